@@ -1,0 +1,42 @@
+"""MJX Franka Panda environments built on the project's own Panda model (``envs/assets``).
+
+``get_environment(name, **config_overrides)`` returns a ``brax.envs.base.Env`` that works with
+``brax.envs.wrappers.training.wrap(env, episode_length=env.config.episode_length)``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from brax.envs.base import Env
+
+from envs.franka_pick import FrankaPick
+from envs.franka_reach import FrankaReach
+from popsan_jax.errors import ConfigError
+
+_ENVS = {"franka_pick": FrankaPick, "franka_reach": FrankaReach}
+
+
+def list_environments() -> list[str]:
+    """Names accepted by :func:`get_environment`."""
+    return sorted(_ENVS)
+
+
+def get_environment(name: str, **config_overrides: Any) -> Env:
+    """Build env ``name``; ``config_overrides`` replace keys of its ``default_config()``.
+
+    Unknown names or override keys raise :class:`popsan_jax.errors.ConfigError`.
+    """
+    if name not in _ENVS:
+        raise ConfigError(f"unknown env {name!r}; available: {', '.join(list_environments())}")
+    return _ENVS[name](**config_overrides)
+
+
+def default_config(name: str):
+    """The default config (``ml_collections.ConfigDict``) of env ``name``."""
+    if name not in _ENVS:
+        raise ConfigError(f"unknown env {name!r}; available: {', '.join(list_environments())}")
+    return _ENVS[name].default_config()
+
+
+__all__ = ["FrankaPick", "FrankaReach", "default_config", "get_environment", "list_environments"]

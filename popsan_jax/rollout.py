@@ -126,9 +126,7 @@ def make_episode_runner(
         final, frames = jax.lax.scan(body, carry, None, length=steps)
         length = final["length"]
         terms = {k: v / jnp.maximum(length, 1.0) for k, v in final["terms"].items()}
-        batch = EpisodeBatch(
-            success=final["success"], length=length, ret=final["ret"], terms=terms
-        )
+        batch = EpisodeBatch(success=final["success"], length=length, ret=final["ret"], terms=terms)
         if record:
             batch = batch.replace(**frames)
         return batch

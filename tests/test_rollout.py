@@ -90,7 +90,7 @@ def test_episode_statistics_match_python_loop():
 def test_record_masks_and_runner_reuses_compilation():
     env = CounterEnv()
     runner = make_episode_runner(
-        env, lambda p: (lambda obs, k: jnp.full((obs.shape[0], 1), p)), 4, record=True
+        env, lambda p: lambda obs, k: jnp.full((obs.shape[0], 1), p), 4, record=True
     )
     batch = runner(jnp.float32(1.0), jax.random.PRNGKey(1))
     assert batch.obs.shape == (6, 4, 1) and batch.action.shape == (6, 4, 1)

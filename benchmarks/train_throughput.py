@@ -1,0 +1,103 @@
+"""Training throughput (env steps/s) of PopSAN vs the MLP actor at the same env count.
+
+    python benchmarks/train_throughput.py                     # franka_pick, 512 envs
+    python benchmarks/train_throughput.py --num-envs 256 --iterations 3
+
+Times whole jitted PPO iterations (unroll + normaliser update + minibatch epochs), after
+``--warmup`` iterations that absorb compilation (and the weak-type recompile of a fresh state).
+Target (issue 4): PopSAN >= 60 % of the MLP actor's steps/s at 512 envs on a 2-core CPU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+
+import jax
+
+
+def cpu_name() -> str:
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
+
+
+def measure(actor: str, args: argparse.Namespace) -> float:
+    from popsan_jax import ppo, ppo_update
+    from popsan_jax.config import resolve_config
+
+    config = resolve_config(
+        None,
+        jax.default_backend(),
+        dict(
+            env=args.env,
+            actor=actor,
+            num_envs=args.num_envs,
+            batch_size=args.num_envs,
+            num_minibatches=args.num_minibatches,
+            unroll_length=args.unroll_length,
+            num_updates_per_batch=args.epochs,
+        ),
+    )
+    t = ppo.build_trainer(config)
+    key = jax.random.PRNGKey(0)
+    state = ppo_update.init_training_state(
+        config, t.networks, t.optimizer, t.env.observation_size, key
+    )
+    keys = jax.random.split(key, config.num_envs).reshape(len(t.devices), -1, 2)
+    env_state = jax.pmap(t.wrapped.reset)(keys)
+    state = jax.device_put_replicated(state, t.devices)
+    t0 = time.monotonic()
+    for i in range(args.warmup + args.iterations):
+        if i == args.warmup:
+            jax.block_until_ready(state)
+            print(f"  {actor}: compiled + warm-up {time.monotonic() - t0:.1f} s", flush=True)
+            t0 = time.monotonic()
+        state, env_state, metrics = t.iteration(
+            state, env_state, jax.random.split(jax.random.PRNGKey(i), len(t.devices))
+        )
+    jax.block_until_ready((state, metrics))
+    elapsed = time.monotonic() - t0
+    return args.iterations * config.env_steps_per_iteration / elapsed
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--env", default="franka_pick")
+    p.add_argument("--num-envs", type=int, default=512)
+    p.add_argument("--unroll-length", type=int, default=10)
+    p.add_argument("--num-minibatches", type=int, default=8)
+    p.add_argument("--epochs", type=int, default=4)
+    p.add_argument("--warmup", type=int, default=2)
+    p.add_argument("--iterations", type=int, default=3)
+    p.add_argument("--actors", default="popsan,mlp")
+    args = p.parse_args()
+
+    from popsan_jax.jax_setup import enable_compilation_cache
+
+    enable_compilation_cache()
+    print(
+        f"train throughput on {args.env}: {args.num_envs} envs, unroll {args.unroll_length}, "
+        f"{args.num_minibatches} minibatches x {args.epochs} epochs; "
+        f"{jax.device_count()} {jax.default_backend()} device(s); "
+        f"{cpu_name()}, {os.cpu_count()} cores",
+        flush=True,
+    )
+    rates = {}
+    for actor in args.actors.split(","):
+        rates[actor] = measure(actor, args)
+        print(f"{actor:>7}: {rates[actor]:,.0f} env steps/s", flush=True)
+    if {"popsan", "mlp"} <= set(rates):
+        ratio = rates["popsan"] / rates["mlp"]
+        verdict = "meets" if ratio >= 0.6 else "misses"
+        print(f"popsan / mlp = {ratio:.2f} ({verdict} the >= 0.60 target)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,176 @@
+"""Evaluate a saved run: report, tracking figure, energy table, latency, video; or compare runs.
+
+    python eval.py runs/<dir> [--best | --step N] [--episodes 1000] [--stochastic]
+                   [--timesteps 1,2,3,4,5] [--ann-run runs/<mlp dir>] [--video out.mp4]
+                   [--no-energy] [--no-latency] [--no-tracking]
+    python eval.py --compare runs/a runs/b ... [--out compare.png]
+
+Outputs go into the run directory: ``eval_<which>.json`` (report, energy rows, latency),
+``tracking_<which>.png``, ``energy_<which>.md`` and ``.csv``. Video rendering needs EGL or OSMesa
+(CPU machines: ``apt-get install -y libosmesa6``); see popsan_jax/video.py.
+A UserError (missing/corrupt/incompatible checkpoint, bad flag value) prints ``error: <msg>``
+and exits 2; argparse rejects unknown flags with exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from popsan_jax.errors import UserError
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("run_dir", nargs="?", help="run directory with config.json and checkpoints/")
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--best", action="store_true", help="best checkpoint by success rate")
+    which.add_argument("--step", type=int, help="checkpoint at this env step (default: last)")
+    p.add_argument("--episodes", type=int, default=1000, help="evaluation episodes (default 1000)")
+    p.add_argument("--stochastic", action="store_true", help="sample actions (default: mean)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--timesteps", default="1,2,3,4,5", help="T values of the energy table")
+    p.add_argument("--ann-run", help="MLP run whose hidden sizes define the ANN baseline")
+    p.add_argument("--video", metavar="OUT", help="render one episode to this .mp4/.gif")
+    p.add_argument("--no-energy", action="store_true", help="skip the energy table")
+    p.add_argument("--no-latency", action="store_true", help="skip the latency table")
+    p.add_argument("--no-tracking", action="store_true", help="skip the tracking figure")
+    p.add_argument("--latency-repeats", type=int, default=100, help=argparse.SUPPRESS)
+    p.add_argument("--compare", nargs="+", metavar="RUN", help="plot training curves of runs")
+    p.add_argument("--out", help="figure path for --compare (default compare.png)")
+    return p
+
+
+def parse_timesteps(text: str) -> list[int]:
+    try:
+        values = [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        values = []
+    if not values or min(values) < 1:
+        raise UserError(f"--timesteps must be positive integers like 1,2,3, got {text!r}")
+    return values
+
+
+def compare(runs: list[str], out: str | None) -> None:
+    from popsan_jax import plots
+
+    path = plots.plot_compare([plots.read_run_curves(r) for r in runs], out or "compare.png")
+    print(f"wrote {path}")
+
+
+def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any]:
+    import jax
+
+    from popsan_jax import energy, evaluation, latency, plots
+    from popsan_jax.checkpoint import load_run
+    from popsan_jax.config import RunConfig
+    from popsan_jax.jax_setup import enable_compilation_cache
+
+    if args.episodes < 1:
+        raise UserError(f"--episodes must be >= 1, got {args.episodes}")
+    timesteps = parse_timesteps(args.timesteps)
+    ann_hidden = None
+    if args.ann_run:
+        ann_cfg = RunConfig.from_json(Path(args.ann_run) / "config.json")
+        if ann_cfg.actor != "mlp":
+            raise UserError(f"--ann-run {args.ann_run} is a {ann_cfg.actor!r} run, not an MLP")
+        ann_hidden = tuple(ann_cfg.actor_kwargs["hidden_sizes"])
+    enable_compilation_cache()
+    which = "best" if args.best else (args.step if args.step is not None else "last")
+    tag = evaluation.checkpoint_label(which)
+    run_dir = Path(args.run_dir)
+    t0 = time.monotonic()
+    loaded = load_run(run_dir, which, environment=environment)
+    print(
+        f"loaded {run_dir} ({tag}, env step {loaded.step}); compiling and running "
+        f"{args.episodes} episodes",
+        flush=True,
+    )
+    key = jax.random.PRNGKey(args.seed)
+    key, k_eval = jax.random.split(key)
+    batch = jax.device_get(
+        evaluation.rollouts(loaded, args.episodes, k_eval, not args.stochastic, record=True)
+    )
+    report = dict(
+        run_dir=str(run_dir),
+        which=tag,
+        env_steps=loaded.step,
+        policy="stochastic" if args.stochastic else "deterministic",
+        actor=loaded.config.actor,
+        timesteps=evaluation.trained_timesteps(loaded.config),
+        **evaluation.summarize(batch),
+    )
+    print(evaluation.format_report(report))
+    shown = evaluation.showcase_index(batch)
+    episode = evaluation.episode_arrays(batch, shown)
+    outcome = "success" if batch.success[shown] > 0 else "no success"
+    if not args.no_tracking:
+        path = plots.plot_tracking(
+            episode,
+            run_dir / f"tracking_{tag}.png",
+            goal_z=getattr(loaded.env, "goal_z", None),
+            dt=getattr(loaded.env.config, "ctrl_dt", None),
+            title=f"{run_dir.name} ({tag}), episode {shown} ({outcome})",
+        )
+        print(f"wrote {path}")
+    if not args.no_energy and loaded.config.actor == "popsan":
+        print(f"energy sweep over T = {timesteps} ({args.episodes} episodes each)")
+        rows = evaluation.energy_sweep(
+            loaded,
+            timesteps,
+            args.episodes,
+            key,
+            ann_hidden,
+            not args.stochastic,
+            batch,
+            progress=lambda msg: print(f"  {msg}", flush=True),
+        )
+        md = energy.energy_markdown(rows, f"Energy per inference, {run_dir.name} ({tag})")
+        (run_dir / f"energy_{tag}.md").write_text(md)
+        energy.write_energy_csv(rows, run_dir / f"energy_{tag}.csv")
+        report["energy"] = rows
+        print(md)
+    elif not args.no_energy:
+        print("energy table skipped: it needs a PopSAN run (this run's actor is an MLP)")
+    if not args.no_latency:
+        actors = evaluation.latency_actors(loaded, ann_hidden)
+        rows = latency.latency_table(
+            actors, loaded.env.observation_size, repeats=args.latency_repeats
+        )
+        report["latency"] = rows
+        print(latency.format_latency(rows))
+    if args.video:
+        from popsan_jax.video import render_video
+
+        dt = float(getattr(loaded.env.config, "ctrl_dt", 0.02))
+        qpos = episode["qpos"]
+        path, backend = render_video(loaded.env.mj_model, qpos, args.video, fps=1.0 / dt)
+        report["video"] = str(path)
+        print(f"wrote {path} (episode {shown}, {outcome}, {len(qpos)} frames, {backend} GL)")
+    report["wall_s"] = time.monotonic() - t0
+    path = evaluation.write_json(run_dir / f"eval_{tag}.json", report)
+    print(f"wrote {path}")
+    return report
+
+
+def main(argv: list[str] | None = None, environment: Any = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not args.compare and not args.run_dir:
+        parser.error("give a run directory, or --compare RUN [RUN ...]")
+    try:
+        if args.compare:
+            compare(args.compare + ([args.run_dir] if args.run_dir else []), args.out)
+        else:
+            evaluate(args, environment)
+    except UserError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,216 @@
+"""The jitted pieces of one PPO training iteration, built from Brax's own parts.
+
+See :mod:`popsan_jax.ppo` for why we drive Brax's pieces with our own loop. Shapes: ``E`` envs on
+this device, ``U`` unrolls per iteration, ``L`` unroll length, ``S = U * E`` sequences,
+``M`` minibatches.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import optax
+from brax.training import acting, gradients
+from brax.training.acme import running_statistics
+from brax.training.agents.ppo import losses as ppo_losses
+from brax.training.agents.ppo import networks as ppo_networks
+
+from popsan_jax.config import RunConfig
+
+AXIS = "devices"
+
+
+@flax.struct.dataclass
+class TrainingState:
+    """Everything a resumed run needs besides the rng key (kept by the host loop).
+
+    ``env_steps`` is an int32 scalar: 2**31 steps is far beyond any planned run.
+    """
+
+    params: ppo_losses.PPONetworkParams
+    opt_state: Any
+    normalizer_params: running_statistics.RunningStatisticsState
+    env_steps: jax.Array
+
+
+def build_networks(
+    config: RunConfig, observation_size: int, action_size: int
+) -> ppo_networks.PPONetworks:
+    """Engineer A's factory with running-statistics normalisation clipped to ``obs_clip``."""
+    from popsan_jax.networks import make_ppo_networks
+
+    preprocess = functools.partial(running_statistics.normalize, max_abs_value=config.obs_clip)
+    return make_ppo_networks(
+        observation_size,
+        action_size,
+        preprocess_observations_fn=preprocess,
+        actor=config.actor,
+        actor_kwargs=dict(config.actor_kwargs),
+        critic_hidden_sizes=tuple(config.critic_hidden_sizes),
+        init_log_std=config.init_log_std,
+    )
+
+
+def make_optimizer(config: RunConfig) -> optax.GradientTransformation:
+    """Adam with separate actor / critic learning rates (the PopSAN paper's 1e-5 / 1e-4 split),
+    optional cosine decay over the whole run, and optional global grad-norm clipping."""
+    total_updates = config.num_iterations * config.num_updates_per_batch * config.num_minibatches
+
+    def lr(value: float) -> optax.ScalarOrSchedule:
+        if config.lr_schedule == "cosine":
+            return optax.cosine_decay_schedule(value, decay_steps=total_updates)
+        return value
+
+    def labels(params: ppo_losses.PPONetworkParams) -> ppo_losses.PPONetworkParams:
+        return ppo_losses.PPONetworkParams(
+            policy=jax.tree.map(lambda _: "actor", params.policy),
+            value=jax.tree.map(lambda _: "critic", params.value),
+        )
+
+    split = optax.multi_transform(
+        {"actor": optax.adam(lr(config.actor_lr)), "critic": optax.adam(lr(config.critic_lr))},
+        labels,
+    )
+    if config.max_grad_norm is None:
+        return split
+    return optax.chain(optax.clip_by_global_norm(config.max_grad_norm), split)
+
+
+def init_training_state(
+    config: RunConfig,
+    networks: ppo_networks.PPONetworks,
+    optimizer: optax.GradientTransformation,
+    observation_size: int,
+    key: jax.Array,
+) -> TrainingState:
+    key_policy, key_value = jax.random.split(key)
+    params = ppo_losses.PPONetworkParams(
+        policy=networks.policy_network.init(key_policy),
+        value=networks.value_network.init(key_value),
+    )
+    normalizer = running_statistics.init_state(jnp.zeros((observation_size,), jnp.float32))
+    return TrainingState(
+        params=params,
+        opt_state=optimizer.init(params),
+        normalizer_params=normalizer,
+        env_steps=jnp.zeros((), jnp.int32),
+    )
+
+
+def all_finite(tree: Any) -> jax.Array:
+    leaves = [
+        jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree) if jnp.issubdtype(x, jnp.inexact)
+    ]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
+
+
+def make_iteration_fn(
+    config: RunConfig,
+    env: Any,
+    networks: ppo_networks.PPONetworks,
+    optimizer: optax.GradientTransformation,
+    diagnostics_fn: Callable[[TrainingState, jax.Array], dict[str, jax.Array]],
+    axis_name: str | None = AXIS,
+) -> Callable[[TrainingState, Any, jax.Array], tuple[TrainingState, Any, dict[str, jax.Array]]]:
+    """One full iteration (unroll, normaliser update, epochs of minibatch SGD) for one device.
+
+    ``env`` is the training-wrapped (vmapped, auto-reset) env; ``diagnostics_fn(state, obs [B,
+    O]) -> metrics`` adds entropy / firing rates. Under pmap, gradients and normaliser statistics
+    are averaged over ``axis_name``. Returns per-iteration mean metrics plus ``finite`` (1.0 when
+    loss and parameters are all finite).
+    """
+    make_policy = ppo_networks.make_inference_fn(networks)
+    loss_fn = functools.partial(
+        ppo_losses.compute_ppo_loss,
+        ppo_network=networks,
+        entropy_cost=config.entropy_cost,
+        discounting=config.discounting,
+        reward_scaling=config.reward_scaling,
+        gae_lambda=config.gae_lambda,
+        clipping_epsilon=config.clipping_epsilon,
+        normalize_advantage=config.normalize_advantage,
+        vf_coefficient=config.vf_coefficient,
+    )
+    update = gradients.gradient_update_fn(loss_fn, optimizer, axis_name, has_aux=True)
+    minibatches = config.num_minibatches
+
+    def minibatch_step(carry, data, normalizer_params):
+        opt_state, params, key = carry
+        key, key_loss = jax.random.split(key)
+        (_, metrics), params, opt_state = update(
+            params, normalizer_params, data, key_loss, optimizer_state=opt_state
+        )
+        return (opt_state, params, key), metrics
+
+    def epoch(carry, _, data, normalizer_params):
+        opt_state, params, key = carry
+        key, key_perm, key_grad = jax.random.split(key, 3)
+
+        def shuffle(x: jax.Array) -> jax.Array:
+            x = jax.random.permutation(key_perm, x)
+            return jnp.reshape(x, (minibatches, -1) + x.shape[1:])
+
+        (opt_state, params, _), metrics = jax.lax.scan(
+            functools.partial(minibatch_step, normalizer_params=normalizer_params),
+            (opt_state, params, key_grad),
+            jax.tree.map(shuffle, data),
+        )
+        return (opt_state, params, key), metrics
+
+    def iteration(state: TrainingState, env_state: Any, key: jax.Array):
+        key_sgd, key_unroll = jax.random.split(key)
+        policy = make_policy((state.normalizer_params, state.params.policy))
+
+        def unroll(carry, _):
+            env_state, k = carry
+            k, k_next = jax.random.split(k)
+            env_state, data = acting.generate_unroll(
+                env, env_state, policy, k, config.unroll_length, extra_fields=("truncation",)
+            )
+            return (env_state, k_next), data
+
+        (env_state, _), data = jax.lax.scan(
+            unroll, (env_state, key_unroll), (), length=config.unrolls_per_iteration
+        )
+        # [U, L, E, ...] -> [U * E, L, ...]: one sequence per row, as compute_ppo_loss expects.
+        data = jax.tree.map(lambda x: jnp.swapaxes(x, 1, 2), data)
+        data = jax.tree.map(lambda x: jnp.reshape(x, (-1,) + x.shape[2:]), data)
+        normalizer = running_statistics.update(
+            state.normalizer_params, data.observation, pmap_axis_name=axis_name
+        )
+        (opt_state, params, _), metrics = jax.lax.scan(
+            functools.partial(epoch, data=data, normalizer_params=normalizer),
+            (state.opt_state, state.params, key_sgd),
+            (),
+            length=config.num_updates_per_batch,
+        )
+        steps = config.env_steps_per_iteration
+        new_state = TrainingState(
+            params=params,
+            opt_state=opt_state,
+            normalizer_params=normalizer,
+            env_steps=state.env_steps + jnp.int32(steps),
+        )
+        out = {
+            "loss/total": metrics["total_loss"],
+            "loss/policy": metrics["policy_loss"],
+            "loss/value": metrics["v_loss"],
+            "loss/entropy": metrics["entropy_loss"],
+            "kl": metrics["kl_mean"],
+        }
+        out = {k: jnp.mean(v) for k, v in out.items()}
+        out["train/reward_per_step"] = jnp.mean(data.reward)
+        obs_sample = data.observation[: min(256, data.observation.shape[0]), 0]
+        out.update(diagnostics_fn(new_state, obs_sample))
+        finite = all_finite((out["loss/total"], params, normalizer.mean, normalizer.std))
+        out["finite"] = finite.astype(jnp.float32)
+        if axis_name is not None:
+            out = jax.lax.pmean(out, axis_name)
+        return new_state, env_state, out
+
+    return iteration
