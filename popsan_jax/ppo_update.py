@@ -109,6 +109,28 @@ def all_finite(tree: Any) -> jax.Array:
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
 
 
+def refresh_reset_states(env: Any, env_state: Any, key: jax.Array) -> Any:
+    """Redraw the states that Brax's ``AutoResetWrapper`` restarts finished episodes from.
+
+    That wrapper restores ``info["first_pipeline_state"]``/``info["first_obs"]``, drawn once at
+    the first reset, so without this every episode of an env slot would start from the same
+    cube / target position and the policy would see only ``num_envs`` distinct tasks. One
+    batched reset per iteration (not per step) keeps it cheap.
+
+    Args:
+      env: the training-wrapped env (vmapped, auto-reset).
+      env_state: its batched state, ``E`` envs on this device.
+      key: rng for the new start states.
+    """
+    fresh = env.reset(jax.random.split(key, env_state.obs.shape[0]))
+    info = {
+        **env_state.info,
+        "first_pipeline_state": fresh.pipeline_state,
+        "first_obs": fresh.obs,
+    }
+    return env_state.replace(info=info)
+
+
 def make_iteration_fn(
     config: RunConfig,
     env: Any,
@@ -163,8 +185,9 @@ def make_iteration_fn(
         return (opt_state, params, key), metrics
 
     def iteration(state: TrainingState, env_state: Any, key: jax.Array):
-        key_sgd, key_unroll = jax.random.split(key)
+        key_sgd, key_unroll, key_reset = jax.random.split(key, 3)
         policy = make_policy((state.normalizer_params, state.params.policy))
+        env_state = refresh_reset_states(env, env_state, key_reset)
 
         def unroll(carry, _):
             env_state, k = carry

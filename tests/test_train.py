@@ -224,3 +224,24 @@ def test_two_devices_shard_envs(tmp_path):
     assert out.split()[-1] == "finished"
     assert [r["env_steps"] for r in read_metrics(run_dir, "train")] == [STEPS, 2 * STEPS]
     assert checkpoint.load_run(run_dir, environment=PointMass()).step == 2 * STEPS
+
+
+def test_auto_reset_start_states_are_redrawn_each_iteration():
+    from brax.envs.wrappers import training as brax_training
+
+    wrapped = brax_training.wrap(PointMass(episode_length=3), episode_length=3, action_repeat=1)
+    state = wrapped.reset(jax.random.split(jax.random.PRNGKey(0), 8))
+    before = np.asarray(state.info["first_obs"])
+    refreshed = ppo_update.refresh_reset_states(wrapped, state, jax.random.PRNGKey(1))
+    after = np.asarray(refreshed.info["first_obs"])
+    # The new start states are exactly fresh resets with the split key, all different from before.
+    expected = wrapped.reset(jax.random.split(jax.random.PRNGKey(1), 8)).obs
+    np.testing.assert_array_equal(after, np.asarray(expected))
+    assert np.all(np.any(after != before, axis=1))
+    # The running episodes are untouched, and an episode that ends restarts from a new state.
+    np.testing.assert_array_equal(np.asarray(refreshed.obs), np.asarray(state.obs))
+    step = jax.jit(wrapped.step)
+    s = refreshed
+    for _ in range(3):
+        s = step(s, jnp.zeros((8, 2)))
+    np.testing.assert_array_equal(np.asarray(s.obs), after)
