@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# The reach study of docs/results.md: PopSAN vs MLP on franka_reach, 3 seeds each, then eval.
+# Usage: bash docs/results/reach_study.sh [RUNS_DIR]   (about 25 minutes on a 2-core CPU)
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+RUNS=${1:-runs/reach_study}
+PY=.venv/bin/python
+COMMON=(--env franka_reach
+  --env-override episode_length=50
+  --env-override "target_low=[0.45, -0.1, 0.25]"
+  --env-override "target_high=[0.6, 0.1, 0.4]"
+  --num-envs 128 --batch-size 128 --num-minibatches 4 --unroll-length 10
+  --num-updates-per-batch 8 --critic-lr 1e-3 --entropy-cost 1e-3 --init-log-std -1.0
+  --critic-hidden-sizes 128,128 --hidden-sizes 128,128
+  --total-env-steps 400000 --num-evals 10 --num-eval-envs 128 --no-progress
+  --runs-dir "$RUNS")
+train() {  # actor seed extra-flags...
+  local actor=$1 seed=$2; shift 2
+  [ -e "$RUNS/$actor-s$seed/checkpoints/index.json" ] && return 0
+  $PY train.py "${COMMON[@]}" --actor "$actor" --seed "$seed" --name "$actor-s$seed" "$@"
+}
+for seed in 0 1 2; do
+  train popsan "$seed" --actor-lr 1e-3 --lr-schedule cosine &
+  train mlp "$seed" --actor-lr 3e-4 --lr-schedule constant
+  wait
+done
+for seed in 0 1 2; do
+  for actor in popsan mlp; do
+    $PY eval.py "$RUNS/$actor-s$seed" --episodes 1000 --no-energy --no-latency --no-tracking
+  done
+done
+# Energy table (T = 1..5 with success at each T), latency and tracking for one seed per actor.
+$PY eval.py "$RUNS/popsan-s0" --episodes 1000 --ann-run "$RUNS/mlp-s0"
+$PY eval.py --compare "$RUNS"/popsan-s* "$RUNS"/mlp-s* --out docs/results/reach_curves.png
