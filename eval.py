@@ -62,6 +62,9 @@ def compare(runs: list[str], out: str | None) -> None:
 
 
 def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any]:
+    from popsan_jax.jax_setup import import_mjx_quietly
+
+    import_mjx_quietly()  # before brax/MJX modules import it noisily
     import jax
 
     from popsan_jax import energy, evaluation, latency, plots
@@ -147,7 +150,13 @@ def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any
 
         dt = float(getattr(loaded.env.config, "ctrl_dt", 0.02))
         qpos = episode["qpos"]
-        path, backend = render_video(loaded.env.mj_model, qpos, args.video, fps=1.0 / dt)
+        path, backend = render_video(
+            loaded.env.mj_model,
+            qpos,
+            args.video,
+            fps=1.0 / dt,
+            mocap_pos=episode.get("mocap_pos"),
+        )
         report["video"] = str(path)
         print(f"wrote {path} (episode {shown}, {outcome}, {len(qpos)} frames, {backend} GL)")
     report["wall_s"] = time.monotonic() - t0

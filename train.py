@@ -101,10 +101,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     print("popsan-jax: starting (importing JAX, MJX)...", file=sys.stderr, flush=True)
     from popsan_jax.errors import ConfigError, UserError
-    from popsan_jax.jax_setup import enable_compilation_cache
+    from popsan_jax.jax_setup import enable_compilation_cache, import_mjx_quietly
 
     run_dir = None
     try:
+        import_mjx_quietly()  # before brax/ppo import it noisily
         import jax
 
         from popsan_jax import config as cfg

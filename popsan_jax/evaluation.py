@@ -226,13 +226,15 @@ def showcase_index(batch: EpisodeBatch) -> int:
 
 
 def episode_arrays(batch: EpisodeBatch, index: int = 0) -> dict[str, np.ndarray]:
-    """Recorded ``info`` arrays ``[T_i, ...]`` and ``qpos`` of one episode, cut to its alive
-    steps."""
+    """Recorded ``info`` arrays ``[T_i, ...]``, ``qpos`` and ``mocap_pos`` (when recorded) of one
+    episode, cut to its alive steps."""
     if batch.alive is None or batch.info is None or batch.qpos is None:
         raise ValueError("the batch was not recorded (run with record=True)")
     alive = np.asarray(batch.alive)[:, index] > 0
     out = {k: np.asarray(v)[alive, index] for k, v in batch.info.items()}
     out["qpos"] = np.asarray(batch.qpos)[alive, index]
+    if batch.mocap_pos is not None:
+        out["mocap_pos"] = np.asarray(batch.mocap_pos)[alive, index]
     return out
 
 

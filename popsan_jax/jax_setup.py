@@ -25,3 +25,16 @@ def enable_compilation_cache(cache_dir: str | os.PathLike | None = None) -> Path
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
+
+
+def import_mjx_quietly() -> None:
+    """Import ``mujoco.mjx`` once with its stdout captured.
+
+    mujoco 3.17's MJX prints "Failed to import warp" on stdout whenever the optional Warp (GPU)
+    backend is absent, which is always the case on CPU; users read it as an error.
+    """
+    import contextlib
+    import io
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        import mujoco.mjx  # noqa: F401

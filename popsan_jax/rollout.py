@@ -41,6 +41,7 @@ class EpisodeBatch:
       alive: ``[T, N]`` 1.0 while the episode runs (the step counts), else 0.0; or None.
       info: key -> ``[T, N, ...]`` recorded ``state.info`` entries (fingertips, object, target).
       qpos: ``[T, N, nq]`` generalised positions, enough to re-render the episode; or None.
+      mocap_pos: ``[T, N, nmocap, 3]`` mocap body positions (e.g. the reach target), or None.
     """
 
     success: jax.Array
@@ -52,6 +53,7 @@ class EpisodeBatch:
     alive: jax.Array | None = None
     info: dict[str, jax.Array] | None = None
     qpos: jax.Array | None = None
+    mocap_pos: jax.Array | None = None
 
 
 def make_episode_runner(
@@ -120,6 +122,7 @@ def make_episode_runner(
                 alive=alive,
                 info={k: s.info[k] for k in info_keys if k in s.info},
                 qpos=getattr(s.pipeline_state, "qpos", None),
+                mocap_pos=getattr(s.pipeline_state, "mocap_pos", None),
             )
             return new, frame
 

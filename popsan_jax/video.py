@@ -39,8 +39,11 @@ def render_video(
     height: int = 480,
     backends: tuple[str, ...] = GL_BACKENDS,
     timeout_s: float = 600.0,
+    mocap_pos: np.ndarray | None = None,
 ) -> tuple[Path, str]:
     """Render ``qpos [T, nq]`` of ``mj_model`` to ``out_path`` (mp4/gif by extension).
+
+    ``mocap_pos [T, nmocap, 3]`` places mocap bodies (e.g. the reach target) in each frame.
 
     Returns ``(path, backend used)``. Raises UserError when no GL backend can render.
     """
@@ -59,12 +62,16 @@ def render_video(
         model_file, qpos_file = Path(tmp, "model.mjb"), Path(tmp, "qpos.npy")
         mujoco.mj_saveModel(mj_model, str(model_file), None)
         np.save(qpos_file, qpos)
+        mocap_file = Path(tmp, "mocap.npy")
+        if mocap_pos is not None:
+            np.save(mocap_file, np.asarray(mocap_pos, dtype=np.float64))
         for backend in backends:
             env = dict(os.environ, MUJOCO_GL=backend, PYOPENGL_PLATFORM=backend)
             args = [str(model_file), str(qpos_file), str(out_path), str(fps), str(width)]
+            args_tail = [str(mocap_file)] if mocap_pos is not None else []
             try:
                 proc = subprocess.run(
-                    [sys.executable, "-c", _WORKER, *args, str(height)],
+                    [sys.executable, "-c", _WORKER, *args, str(height), *args_tail],
                     env=env,
                     capture_output=True,
                     text=True,
@@ -94,7 +101,13 @@ def gl_available(backend: str = "osmesa") -> bool:
 
 
 def _render_worker(
-    model_file: str, qpos_file: str, out_path: str, fps: str, width: str, height: str
+    model_file: str,
+    qpos_file: str,
+    out_path: str,
+    fps: str,
+    width: str,
+    height: str,
+    mocap_file: str | None = None,
 ) -> None:
     """Subprocess body: MUJOCO_GL is already set in this process's environment."""
     import imageio
@@ -106,14 +119,17 @@ def _render_worker(
     model.vis.global_.offheight = max(model.vis.global_.offheight, int(height))
     data = mujoco.MjData(model)
     qpos = np.load(qpos_file)
+    mocap = np.load(mocap_file) if mocap_file else None
     camera = mujoco.MjvCamera()
     camera.type = mujoco.mjtCamera.mjCAMERA_FREE
     camera.lookat[:] = (0.45, 0.0, 0.25)
     camera.distance, camera.azimuth, camera.elevation = 1.6, 150.0, -25.0
     with mujoco.Renderer(model, int(height), int(width)) as renderer:
         with imageio.get_writer(out_path, fps=float(fps)) as writer:
-            for q in qpos:
+            for t, q in enumerate(qpos):
                 data.qpos[:] = q
+                if mocap is not None:
+                    data.mocap_pos[:] = mocap[t]
                 mujoco.mj_forward(model, data)
                 renderer.update_scene(data, camera=camera)
                 writer.append_data(renderer.render())

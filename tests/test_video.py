@@ -35,3 +35,30 @@ def test_no_gl_backend_is_one_clear_error(tmp_path, monkeypatch):
     assert "\n" not in str(exc.value)
     with pytest.raises(ValueError):
         render_video(model, qpos[:, :3], tmp_path / "v.mp4")
+
+
+@pytest.mark.skipif(not HAVE_GL, reason="neither EGL nor OSMesa works (apt-get install libosmesa6)")
+def test_video_places_mocap_bodies(tmp_path):
+    import mujoco
+
+    # No joints at all: only the mocap target can move, so any change between frames is its doing.
+    model = mujoco.MjModel.from_xml_string(
+        """<mujoco><worldbody><light pos="0 0 3"/>
+        <geom type="plane" size="2 2 0.1" rgba="0.8 0.8 0.8 1"/>
+        <body name="target" mocap="true" pos="0 0 0.3">
+          <geom type="sphere" size="0.06" rgba="0.1 0.9 0.1 1" contype="0" conaffinity="0"/>
+        </body></worldbody></mujoco>"""
+    )
+    qpos = np.zeros((6, 0))
+    still, _ = render_video(model, qpos, tmp_path / "still.mp4", fps=10, width=160, height=128)
+    mocap = np.zeros((6, 1, 3))
+    mocap[:, 0, 0] = np.linspace(-0.3, 0.3, 6)
+    mocap[:, 0, 2] = 0.3
+    moving, _ = render_video(
+        model, qpos, tmp_path / "moving.mp4", fps=10, width=160, height=128, mocap_pos=mocap
+    )
+    still_frames = [np.asarray(f, dtype=float) for f in imageio.get_reader(still)]
+    frames = [np.asarray(f, dtype=float) for f in imageio.get_reader(moving)]
+    assert len(frames) == 6
+    assert np.abs(still_frames[0] - still_frames[-1]).mean() < 0.5  # nothing moves without mocap
+    assert np.abs(frames[0] - frames[-1]).mean() > 0.5  # the target moved
