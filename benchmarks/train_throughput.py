@@ -6,6 +6,12 @@
 Times whole jitted PPO iterations (unroll + normaliser update + minibatch epochs), after
 ``--warmup`` iterations that absorb compilation (and the weak-type recompile of a fresh state).
 Target (issue 4): PopSAN >= 60 % of the MLP actor's steps/s at 512 envs on a 2-core CPU.
+
+It also prints the ceiling that the same maths allows: the ratio PopSAN would reach if both
+actors' dense FLOPs ran at the fp32 matmul rate measured in this process and everything else
+(env, critic, PPO bookkeeping) cost what the MLP run shows. FLOPs per env step = one rollout
+forward + ``epochs`` x (forward + backward) as executed: PopSAN's first-layer input gradient is one
+matmul on the T-summed cotangent (see popsan_jax/encoder.py); the MLP needs no input gradient.
 """
 
 from __future__ import annotations
@@ -16,6 +22,8 @@ import platform
 import time
 
 import jax
+import jax.numpy as jnp
+from actor_throughput import popsan_dense_flops
 
 
 def cpu_name() -> str:
@@ -28,7 +36,35 @@ def cpu_name() -> str:
     return platform.processor() or "unknown CPU"
 
 
-def measure(actor: str, args: argparse.Namespace) -> float:
+def actor_flops_per_env_step(config, obs_dim: int, action_size: int, epochs: int) -> float:
+    """Dense FLOPs of the actor per env step of training, as executed (see the docstring)."""
+    kw = config.actor_kwargs
+    if config.actor == "popsan":
+        t, pop = kw["timesteps"], kw["encoder_pop_dim"]
+        fwd = popsan_dense_flops(obs_dim, action_size, tuple(kw["hidden_sizes"]), pop, t)
+        train = 3 * fwd - 2.0 * (t - 1) * obs_dim * pop * kw["hidden_sizes"][0]
+    else:
+        sizes = [obs_dim, *kw["hidden_sizes"], action_size]
+        fwd = 2.0 * sum(a * b for a, b in zip(sizes[:-1], sizes[1:], strict=False))
+        train = 3 * fwd - 2.0 * sizes[0] * sizes[1]
+    return fwd + epochs * train
+
+
+def matmul_gflops(n: int = 2048, repeats: int = 10) -> float:
+    """Best-of-``repeats`` fp32 ``n x n`` matmul rate of this process."""
+    a = jax.random.normal(jax.random.PRNGKey(0), (n, n), jnp.float32)
+    matmul = jax.jit(jnp.matmul)
+    jax.block_until_ready(matmul(a, a))
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(matmul(a, a))
+        best = min(best, time.perf_counter() - t0)
+    return 2.0 * n**3 / best / 1e9
+
+
+def measure(actor: str, args: argparse.Namespace) -> tuple[float, float]:
+    """(env steps/s, actor dense FLOPs per env step) for one actor."""
     from popsan_jax import ppo, ppo_update
     from popsan_jax.config import resolve_config
 
@@ -64,7 +100,8 @@ def measure(actor: str, args: argparse.Namespace) -> float:
         )
     jax.block_until_ready((state, metrics))
     elapsed = time.monotonic() - t0
-    return args.iterations * config.env_steps_per_iteration / elapsed
+    flops = actor_flops_per_env_step(config, t.env.observation_size, t.env.action_size, args.epochs)
+    return args.iterations * config.env_steps_per_iteration / elapsed, flops
 
 
 def main() -> None:
@@ -89,14 +126,26 @@ def main() -> None:
         f"{cpu_name()}, {os.cpu_count()} cores",
         flush=True,
     )
-    rates = {}
+    rates, flops = {}, {}
     for actor in args.actors.split(","):
-        rates[actor] = measure(actor, args)
-        print(f"{actor:>7}: {rates[actor]:,.0f} env steps/s", flush=True)
+        rates[actor], flops[actor] = measure(actor, args)
+        print(
+            f"{actor:>7}: {rates[actor]:,.0f} env steps/s; actor {flops[actor] / 1e6:.2f} "
+            "MFLOP per env step",
+            flush=True,
+        )
     if {"popsan", "mlp"} <= set(rates):
         ratio = rates["popsan"] / rates["mlp"]
         verdict = "meets" if ratio >= 0.6 else "misses"
         print(f"popsan / mlp = {ratio:.2f} ({verdict} the >= 0.60 target)")
+        gflops = matmul_gflops()
+        t_mlp, t_pop = 1.0 / rates["mlp"], 1.0 / rates["popsan"]
+        extra_ideal = (flops["popsan"] - flops["mlp"]) / (gflops * 1e9)
+        print(
+            f"matmul fp32 2048^3: {gflops:.0f} GFLOP/s; PopSAN's extra actor work runs at "
+            f"{extra_ideal / (t_pop - t_mlp):.0%} of it in the loop; ceiling at 100 %: "
+            f"popsan / mlp = {t_mlp / (t_mlp + extra_ideal):.2f}"
+        )
 
 
 if __name__ == "__main__":

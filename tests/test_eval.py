@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _eval_fixtures import PointPick, tiny_popsan_config
+from _toy_env import PointPick, tiny_popsan_config
 from brax.training.acme import running_statistics
 from brax.training.agents.ppo import networks as ppo_networks
 

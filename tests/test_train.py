@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _train_fixtures import PointMass, tiny_config
+from _toy_env import PointPick, tiny_config
 
 from popsan_jax import checkpoint, ppo, ppo_update
 from popsan_jax.errors import NonFiniteError
@@ -40,7 +40,7 @@ def two_iteration_run(tmp_path_factory):
     """2 iterations, an eval + checkpoint after each (num_evals=2)."""
     run_dir = tmp_path_factory.mktemp("runs") / "tiny"
     config = tiny_config(total_env_steps=2 * STEPS)
-    result = ppo.train(config, run_dir, environment=PointMass(), progress=False)
+    result = ppo.train(config, run_dir, environment=PointPick(), progress=False)
     return config, run_dir, result
 
 
@@ -74,7 +74,7 @@ def test_run_directory_contents(two_iteration_run):
         )
     for r in evals:
         assert 0.0 <= r["success_rate"] <= 1.0
-        assert r["episode_length"] == 30.0  # the point mass never terminates early
+        assert r["episode_length"] == PointPick().config.episode_length  # never terminates early
         assert {"reward/distance", "reward/action_cost", "episode_reward", "steps_per_s"} <= set(r)
     assert list((run_dir / "tb").glob("events.out.tfevents.*"))
     index = checkpoint.read_index(run_dir)
@@ -86,16 +86,16 @@ def test_run_directory_contents(two_iteration_run):
 
 def test_load_run_rebuilds_the_saved_policy(two_iteration_run):
     config, run_dir, result = two_iteration_run
-    loaded = checkpoint.load_run(run_dir, "last", environment=PointMass())
+    loaded = checkpoint.load_run(run_dir, "last", environment=PointPick())
     assert loaded.step == 2 * STEPS and loaded.config == config
     assert _equal_trees(loaded.policy_params, result.state.params.policy)
     assert _equal_trees(loaded.value_params, result.state.params.value)
-    obs = jax.random.normal(jax.random.PRNGKey(3), (5, 4))
+    obs = jax.random.normal(jax.random.PRNGKey(3), (5, PointPick().observation_size))
     action = loaded.make_policy()(obs, jax.random.PRNGKey(0))
     # deterministic action == the actor's mean on the clipped, normalised observation
     norm = loaded.normalizer_params
     x = jnp.clip((obs - norm.mean) / norm.std, -config.obs_clip, config.obs_clip)
-    actor = make_actor("popsan", config.actor_kwargs, 2)
+    actor = make_actor("popsan", config.actor_kwargs, PointPick().action_size)
     mean = actor.apply(actor_variables(loaded.policy_params), x)
     np.testing.assert_allclose(action, mean, rtol=1e-5, atol=1e-6)
     noisy = loaded.make_policy(deterministic=False)(obs, jax.random.PRNGKey(0))
@@ -109,7 +109,7 @@ def test_resume_restores_state_and_continues_step_count(two_iteration_run, tmp_p
     resumed_dir = tmp_path / "resumed"
     shutil.copytree(run_dir, resumed_dir)
     template = ppo_update.init_training_state(
-        config, *_nets_and_opt(config), 4, jax.random.PRNGKey(9)
+        config, *_nets_and_opt(config), PointPick().observation_size, jax.random.PRNGKey(9)
     )
     restored, key, _ = checkpoint.restore_checkpoint(resumed_dir, template, "last")
     assert _equal_trees(restored.params, result.state.params)
@@ -117,7 +117,7 @@ def test_resume_restores_state_and_continues_step_count(two_iteration_run, tmp_p
     assert _equal_trees(restored.normalizer_params, result.state.normalizer_params)
     np.testing.assert_array_equal(key, result.key)
     more = config.replace(total_env_steps=4 * STEPS)
-    out = ppo.train(more, resumed_dir, resume=True, environment=PointMass(), progress=False)
+    out = ppo.train(more, resumed_dir, resume=True, environment=PointPick(), progress=False)
     steps = [r["env_steps"] for r in read_metrics(resumed_dir, "train")]
     assert steps == [STEPS, 2 * STEPS, 3 * STEPS, 4 * STEPS]
     # the optimiser state continued: 4 iterations' worth of Adam steps, not 2
@@ -126,14 +126,14 @@ def test_resume_restores_state_and_continues_step_count(two_iteration_run, tmp_p
 
 
 def _nets_and_opt(config):
-    env = PointMass()
+    env = PointPick()
     return (
         ppo_update.build_networks(config, env.observation_size, env.action_size),
         ppo_update.make_optimizer(config),
     )
 
 
-class NaNReward(PointMass):
+class NaNReward(PointPick):
     """Every reward is NaN, so the first loss after resuming is NaN."""
 
     def step(self, state, action):
@@ -151,7 +151,7 @@ def test_nan_stops_with_step_and_keeps_last_good_checkpoint(two_iteration_run, t
     with pytest.raises(NonFiniteError, match=f"at env step {3 * STEPS}"):
         ppo.train(more, nan_dir, resume=True, environment=NaNReward(), progress=False)
     assert checkpoint.read_index(nan_dir)["last"] == 2 * STEPS
-    loaded = checkpoint.load_run(nan_dir, environment=PointMass())
+    loaded = checkpoint.load_run(nan_dir, environment=PointPick())
     assert _equal_trees(loaded.policy_params, result.state.params.policy)
 
 
@@ -160,11 +160,11 @@ import sys
 sys.path.insert(0, {tests!r})
 from popsan_jax.jax_setup import enable_compilation_cache
 enable_compilation_cache()
-from _train_fixtures import PointMass, tiny_config
+from _toy_env import PointPick, tiny_config
 from popsan_jax import ppo
 config = tiny_config(num_envs={num_envs}, batch_size={num_envs}, total_env_steps={total},
                      num_evals={evals})
-ppo.train(config, {run_dir!r}, environment=PointMass(), progress=False,
+ppo.train(config, {run_dir!r}, environment=PointPick(), progress=False,
           on_iteration=lambda s, m: print("step", s, flush=True))
 print("finished", flush=True)
 """
@@ -201,14 +201,14 @@ def test_sigkill_mid_run_leaves_a_loadable_last_checkpoint(tmp_path):
     assert proc.poll() is None, proc.communicate()[1][-2000:]
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    loaded = checkpoint.load_run(run_dir, environment=PointMass())
+    loaded = checkpoint.load_run(run_dir, environment=PointPick())
     last = checkpoint.read_index(run_dir)["last"]
     assert loaded.step == last >= 3 * STEPS
     out = ppo.train(
         tiny_config(total_env_steps=last + STEPS, num_evals=200),
         run_dir,
         resume=True,
-        environment=PointMass(),
+        environment=PointPick(),
         progress=False,
     )
     assert int(out.state.env_steps) == last + STEPS
@@ -223,13 +223,13 @@ def test_two_devices_shard_envs(tmp_path):
     assert "2 cpu device(s)" in err
     assert out.split()[-1] == "finished"
     assert [r["env_steps"] for r in read_metrics(run_dir, "train")] == [STEPS, 2 * STEPS]
-    assert checkpoint.load_run(run_dir, environment=PointMass()).step == 2 * STEPS
+    assert checkpoint.load_run(run_dir, environment=PointPick()).step == 2 * STEPS
 
 
 def test_auto_reset_start_states_are_redrawn_each_iteration():
     from brax.envs.wrappers import training as brax_training
 
-    wrapped = brax_training.wrap(PointMass(episode_length=3), episode_length=3, action_repeat=1)
+    wrapped = brax_training.wrap(PointPick(episode_length=3), episode_length=3, action_repeat=1)
     state = wrapped.reset(jax.random.split(jax.random.PRNGKey(0), 8))
     before = np.asarray(state.info["first_obs"])
     refreshed = ppo_update.refresh_reset_states(wrapped, state, jax.random.PRNGKey(1))
@@ -243,5 +243,5 @@ def test_auto_reset_start_states_are_redrawn_each_iteration():
     step = jax.jit(wrapped.step)
     s = refreshed
     for _ in range(3):
-        s = step(s, jnp.zeros((8, 2)))
+        s = step(s, jnp.zeros((8, 3)))
     np.testing.assert_array_equal(np.asarray(s.obs), after)

@@ -3,7 +3,7 @@
 import imageio
 import numpy as np
 import pytest
-from _eval_fixtures import PointPick
+from _toy_env import PointPick
 
 from popsan_jax.errors import UserError
 from popsan_jax.video import GL_BACKENDS, gl_available, render_video
