@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # The reach study of docs/results.md: PopSAN vs MLP on franka_reach, 3 seeds each, then eval.
-# Usage: bash docs/results/reach_study.sh [RUNS_DIR]   (about 25 minutes on a 2-core CPU)
+# Usage: bash docs/results/reach_study.sh [RUNS_DIR] [HIDDEN]   (HIDDEN: actor hidden sizes of
+#   both actors, default 128,128; about 25 minutes on a 2-core CPU, ~60 minutes with 256,256)
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 RUNS=${1:-runs/reach_study}
+HIDDEN=${2:-128,128}
 PY=.venv/bin/python
 COMMON=(--env franka_reach
   --env-override episode_length=50
@@ -11,7 +13,7 @@ COMMON=(--env franka_reach
   --env-override "target_high=[0.6, 0.1, 0.4]"
   --num-envs 128 --batch-size 128 --num-minibatches 4 --unroll-length 10
   --num-updates-per-batch 8 --critic-lr 1e-3 --entropy-cost 1e-3 --init-log-std -1.0
-  --critic-hidden-sizes 128,128 --hidden-sizes 128,128
+  --critic-hidden-sizes 128,128 --hidden-sizes "$HIDDEN"
   --total-env-steps 400000 --num-evals 10 --num-eval-envs 128 --no-progress
   --runs-dir "$RUNS")
 train() {  # actor seed extra-flags...
@@ -31,4 +33,9 @@ for seed in 0 1 2; do
 done
 # Energy table (T = 1..5 with success at each T), latency and tracking for one seed per actor.
 $PY eval.py "$RUNS/popsan-s0" --episodes 1000 --ann-run "$RUNS/mlp-s0"
-$PY eval.py --compare "$RUNS"/popsan-s* "$RUNS"/mlp-s* --out docs/results/reach_curves.png
+# Energy at T = 1..3 for the other seeds (each against its own seed's ANN run).
+for seed in 1 2; do
+  $PY eval.py "$RUNS/popsan-s$seed" --episodes 1000 --ann-run "$RUNS/mlp-s$seed" \
+    --timesteps 1,2,3 --no-latency --no-tracking
+done
+$PY eval.py --compare "$RUNS"/popsan-s* "$RUNS"/mlp-s* --out "$RUNS/reach_curves.png"

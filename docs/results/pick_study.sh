@@ -1,0 +1,35 @@
+#!/usr/bin/env bash
+# The pick study of docs/results.md (issue 6): PopSAN vs MLP on franka_pick, 3 seeds each, then
+# 1000-episode evaluations, the energy table (T = 1..5, success per T), latency and the curves.
+#
+# Usage: bash docs/results/pick_study.sh [RUNS_DIR] [train.py flags...]
+#   default flags: --preset paper (4096 envs, 100 M steps per run: sized for one GPU).
+#   On this 2-core CPU one such run takes days; see docs/results.md for what was run here.
+# Re-running it resumes unfinished runs from their last checkpoint and skips finished work.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+RUNS=${1:-runs/pick_study}
+shift || true
+FLAGS=("$@")
+[ ${#FLAGS[@]} -eq 0 ] && FLAGS=(--preset paper)
+PY=.venv/bin/python
+train() {  # actor seed
+  local dir="$RUNS/$1-s$2"
+  if [ -e "$dir/checkpoints/index.json" ]; then
+    $PY train.py --resume "$dir" --no-progress
+  else
+    $PY train.py --env franka_pick "${FLAGS[@]}" --actor "$1" --seed "$2" --name "$1-s$2" \
+      --runs-dir "$RUNS" --no-progress
+  fi
+}
+for seed in 0 1 2; do
+  train popsan "$seed"
+  train mlp "$seed"
+done
+for seed in 0 1 2; do
+  for actor in popsan mlp; do
+    $PY eval.py "$RUNS/$actor-s$seed" --episodes 1000 --no-energy --no-latency --no-tracking
+  done
+done
+$PY eval.py "$RUNS/popsan-s0" --episodes 1000 --ann-run "$RUNS/mlp-s0"
+$PY eval.py --compare "$RUNS"/popsan-s* "$RUNS"/mlp-s* --out "$RUNS/pick_curves.png"
