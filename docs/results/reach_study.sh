@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # The reach study of docs/results.md: PopSAN vs MLP on franka_reach, 3 seeds each, then eval.
-# Usage: bash docs/results/reach_study.sh [RUNS_DIR] [HIDDEN]   (HIDDEN: actor hidden sizes of
-#   both actors, default 128,128; about 25 minutes on a 2-core CPU, ~60 minutes with 256,256)
+# Usage: bash docs/results/reach_study.sh [RUNS_DIR] [HIDDEN]
+#   HIDDEN: both actors' hidden sizes, default 256,256 (the paper's PopSAN); the whole study took
+#   25 minutes on the 2-core CPU on 2026-11-25 (docs/results.md). 128,128 is the smaller variant.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 RUNS=${1:-runs/reach_study}
-HIDDEN=${2:-128,128}
+HIDDEN=${2:-256,256}
 PY=.venv/bin/python
 COMMON=(--env franka_reach
   --env-override episode_length=50
