@@ -158,8 +158,11 @@ def plot_compare(runs: Sequence[RunCurves], path: str | os.PathLike) -> Path:
                 ms=3,
                 label=f"{name}: {run.label}",
             )
+    from matplotlib.ticker import EngFormatter  # 400k, 20M: raw step counts overlap
+
     for ax, (_, ylabel) in zip(axes, CURVE_KEYS, strict=True):
         ax.set_xlabel("env steps")
+        ax.xaxis.set_major_formatter(EngFormatter(sep=""))
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     axes[0].set_ylim(-0.03, 1.03)  # success rate is a fraction
