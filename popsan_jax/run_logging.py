@@ -23,6 +23,28 @@ def wandb_available() -> bool:
     return importlib.util.find_spec("wandb") is not None
 
 
+def _drop_records_after(path: Path, env_steps: int) -> None:
+    """Remove records past the checkpoint a run resumes from: it logs those steps again.
+
+    A run killed between checkpoints has logged iterations its checkpoint does not hold; keeping
+    them would put two records at the same step in the curves. A line cut short by the kill goes
+    too. Rewritten atomically.
+    """
+    if not path.exists():
+        return
+    kept = []
+    for line in path.read_text().splitlines():
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            continue  # cut by a kill mid-write: written after the last checkpoint
+        if record.get("env_steps", 0) <= env_steps:
+            kept.append(line + "\n")
+    tmp = path.with_suffix(".jsonl.tmp")
+    tmp.write_text("".join(kept))
+    os.replace(tmp, path)
+
+
 class RunLogger:
     """Writes metrics of one run; ``initial_steps`` > 0 when resuming (appends to the files)."""
 
@@ -37,6 +59,8 @@ class RunLogger:
     ) -> None:
         self.run_dir = Path(run_dir)
         self.start = time.monotonic()
+        if initial_steps > 0:
+            _drop_records_after(self.run_dir / "metrics.jsonl", initial_steps)
         self._jsonl = open(self.run_dir / "metrics.jsonl", "a", buffering=1)
         from tensorboardX import SummaryWriter
 

@@ -116,10 +116,16 @@ def test_resume_restores_state_and_continues_step_count(two_iteration_run, tmp_p
     assert _equal_trees(restored.opt_state, result.state.opt_state)
     assert _equal_trees(restored.normalizer_params, result.state.normalizer_params)
     np.testing.assert_array_equal(key, result.key)
+    # As if the run had logged one more iteration, and half a line, before it was killed: the
+    # resumed run redoes that step, so those records must not stay behind as duplicates.
+    with open(resumed_dir / "metrics.jsonl", "a") as f:
+        f.write(json.dumps({"kind": "train", "env_steps": 3 * STEPS, "stale": True}) + "\n")
+        f.write('{"kind": "train", "env_st')
     more = config.replace(total_env_steps=4 * STEPS)
     out = ppo.train(more, resumed_dir, resume=True, environment=PointPick(), progress=False)
-    steps = [r["env_steps"] for r in read_metrics(resumed_dir, "train")]
-    assert steps == [STEPS, 2 * STEPS, 3 * STEPS, 4 * STEPS]
+    records = read_metrics(resumed_dir, "train")
+    assert [r["env_steps"] for r in records] == [STEPS, 2 * STEPS, 3 * STEPS, 4 * STEPS]
+    assert not any(r.get("stale") for r in records)
     # the optimiser state continued: 4 iterations' worth of Adam steps, not 2
     assert _adam_counts(out.state.opt_state) == [32]
     assert checkpoint.read_index(resumed_dir)["last"] == 4 * STEPS
