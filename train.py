@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 import time
 from pathlib import Path
@@ -97,7 +98,23 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
+    # A job started with `&` by a non-interactive shell has SIGINT ignored, and schedulers stop
+    # jobs with SIGTERM: both should end the run as Ctrl-C does (message, last checkpoint kept).
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    previous_term = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        return _main(argv)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        signal.signal(signal.SIGTERM, previous_term)
+
+
+def _main(argv: list[str] | None) -> int:
     args = parse_args(argv)
     print("popsan-jax: starting (importing JAX, MJX)...", file=sys.stderr, flush=True)
     from popsan_jax.errors import ConfigError, UserError

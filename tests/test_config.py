@@ -7,7 +7,10 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import re
+import signal
+import time
 from pathlib import Path
 
 import flax.struct
@@ -208,3 +211,24 @@ def test_cli_errors_exit_2_with_one_line_and_write_nothing(argv, match, tmp_path
     assert err[-1].startswith("error: ")
     assert re.search(match, err[-1]), err[-1]
     assert not runs.exists()
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_sigint_even_if_ignored_and_sigterm_stop_like_ctrl_c(signum, tmp_path, capsys, monkeypatch):
+    from popsan_jax import ppo
+
+    def killed_mid_training(config, run_dir, **_):
+        os.kill(os.getpid(), signum)
+        time.sleep(5)  # the handler raises before this returns
+        raise AssertionError("the signal did not stop the run")
+
+    monkeypatch.setattr(ppo, "train", killed_mid_training)
+    ignored = signal.signal(signal.SIGINT, signal.SIG_IGN)  # as a `cmd &` job of a script gets
+    try:
+        code = train_cli.main(["--preset", "smoke", "--runs-dir", str(tmp_path), "--name", "r"])
+        # main restores the handlers it found
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, ignored)
+    assert code == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("interrupted; the last")
