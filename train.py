@@ -98,15 +98,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def _interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
-
-
 def main(argv: list[str] | None = None) -> int:
     # A job started with `&` by a non-interactive shell has SIGINT ignored, and schedulers stop
     # jobs with SIGTERM: both should end the run as Ctrl-C does (message, last checkpoint kept).
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
-    previous_term = signal.signal(signal.SIGTERM, _interrupt)
+    previous_term = signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
         return _main(argv)
     finally:

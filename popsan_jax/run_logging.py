@@ -23,25 +23,17 @@ def wandb_available() -> bool:
     return importlib.util.find_spec("wandb") is not None
 
 
-def _drop_records_after(path: Path, env_steps: int) -> None:
+def _drop_records_after(run_dir: Path, env_steps: int) -> None:
     """Remove records past the checkpoint a run resumes from: it logs those steps again.
 
     A run killed between checkpoints has logged iterations its checkpoint does not hold; keeping
     them would put two records at the same step in the curves. A line cut short by the kill goes
-    too. Rewritten atomically.
+    too (``read_metrics`` skips it). Rewritten atomically.
     """
-    if not path.exists():
-        return
-    kept = []
-    for line in path.read_text().splitlines():
-        try:
-            record = json.loads(line)
-        except json.JSONDecodeError:
-            continue  # cut by a kill mid-write: written after the last checkpoint
-        if record.get("env_steps", 0) <= env_steps:
-            kept.append(line + "\n")
+    kept = [r for r in read_metrics(run_dir) if r["env_steps"] <= env_steps]
+    path = run_dir / "metrics.jsonl"
     tmp = path.with_suffix(".jsonl.tmp")
-    tmp.write_text("".join(kept))
+    tmp.write_text("".join(json.dumps(r) + "\n" for r in kept))
     os.replace(tmp, path)
 
 
@@ -60,7 +52,7 @@ class RunLogger:
         self.run_dir = Path(run_dir)
         self.start = time.monotonic()
         if initial_steps > 0:
-            _drop_records_after(self.run_dir / "metrics.jsonl", initial_steps)
+            _drop_records_after(self.run_dir, initial_steps)
         self._jsonl = open(self.run_dir / "metrics.jsonl", "a", buffering=1)
         from tensorboardX import SummaryWriter
 
