@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # The pick study of docs/results.md (issue 6): PopSAN vs MLP on franka_pick, 3 seeds each, then
-# 1000-episode evaluations, the energy table (T = 1..5, success per T), latency and the curves.
+# the evaluations of evaluate_study.sh (energy per T on every seed, latency, curves).
 #
 # Usage: bash docs/results/pick_study.sh [RUNS_DIR] [train.py flags...]
 #   default flags: --preset paper (4096 envs, 100 M steps per run: sized for one GPU).
 #   On this 2-core CPU one such run takes days; see docs/results.md for what was run here.
-# Re-running it resumes unfinished runs from their last checkpoint and skips finished work.
+# Re-running it resumes every run from its last checkpoint (a finished one stops after compiling).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 RUNS=${1:-runs/pick_study}
@@ -26,10 +26,5 @@ for seed in 0 1 2; do
   train popsan "$seed"
   train mlp "$seed"
 done
-for seed in 0 1 2; do
-  for actor in popsan mlp; do
-    $PY eval.py "$RUNS/$actor-s$seed" --episodes 1000 --no-energy --no-latency --no-tracking
-  done
-done
-$PY eval.py "$RUNS/popsan-s0" --episodes 1000 --ann-run "$RUNS/mlp-s0"
-$PY eval.py --compare "$RUNS"/popsan-s* "$RUNS"/mlp-s* --out "$RUNS/pick_curves.png"
+source docs/results/evaluate_study.sh
+evaluate_study "$RUNS" "$RUNS/pick_curves.png"

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The reach study of docs/results.md: PopSAN vs MLP on franka_reach, 3 seeds each, then eval.
+# The reach study of docs/results.md: PopSAN vs MLP on franka_reach, 3 seeds each, then the
+# evaluations of evaluate_study.sh.
 # Usage: bash docs/results/reach_study.sh [RUNS_DIR] [HIDDEN]
 #   HIDDEN: both actors' hidden sizes, default 256,256 (the paper's PopSAN); the whole study took
 #   25 minutes on the 2-core CPU on 2026-11-25 (docs/results.md). 128,128 is the smaller variant.
@@ -27,16 +28,5 @@ for seed in 0 1 2; do
   train mlp "$seed" --actor-lr 3e-4 --lr-schedule constant
   wait
 done
-for seed in 0 1 2; do
-  for actor in popsan mlp; do
-    $PY eval.py "$RUNS/$actor-s$seed" --episodes 1000 --no-energy --no-latency --no-tracking
-  done
-done
-# Energy table (T = 1..5 with success at each T), latency and tracking for one seed per actor.
-$PY eval.py "$RUNS/popsan-s0" --episodes 1000 --ann-run "$RUNS/mlp-s0"
-# Energy at T = 1..3 for the other seeds (each against its own seed's ANN run).
-for seed in 1 2; do
-  $PY eval.py "$RUNS/popsan-s$seed" --episodes 1000 --ann-run "$RUNS/mlp-s$seed" \
-    --timesteps 1,2,3 --no-latency --no-tracking
-done
-$PY eval.py --compare "$RUNS"/popsan-s* "$RUNS"/mlp-s* --out "$RUNS/reach_curves.png"
+source docs/results/evaluate_study.sh
+evaluate_study "$RUNS" "$RUNS/reach_curves.png"
