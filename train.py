@@ -157,8 +157,7 @@ def _main(argv: list[str] | None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        where = f"; resume with: python train.py --resume {run_dir}" if run_dir else ""
-        print(f"\ninterrupted; the last checkpoint is kept{where}", file=sys.stderr)
+        print(f"\n{_interrupted_message(run_dir)}", file=sys.stderr)
         return 130
     final = result.last_eval or {}
     print(
@@ -167,6 +166,22 @@ def _main(argv: list[str] | None) -> int:
         file=sys.stderr,
     )
     return 0
+
+
+def _interrupted_message(run_dir: Path | None) -> str:
+    """What an interrupted run left behind: a checkpoint to resume from, or none yet."""
+    if run_dir is None:
+        return "interrupted"
+    from popsan_jax.checkpoint import read_index
+    from popsan_jax.errors import CheckpointError
+
+    try:
+        read_index(run_dir)
+    except CheckpointError:
+        return f"interrupted before the first checkpoint; {run_dir} has nothing to resume"
+    return (
+        f"interrupted; the last checkpoint is kept; resume with: python train.py --resume {run_dir}"
+    )
 
 
 if __name__ == "__main__":

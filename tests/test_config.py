@@ -213,11 +213,22 @@ def test_cli_errors_exit_2_with_one_line_and_write_nothing(argv, match, tmp_path
     assert not runs.exists()
 
 
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
-def test_sigint_even_if_ignored_and_sigterm_stop_like_ctrl_c(signum, tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize(
+    "signum, checkpointed",
+    [(signal.SIGINT, True), (signal.SIGTERM, True), (signal.SIGTERM, False)],
+)
+def test_sigint_even_if_ignored_and_sigterm_stop_like_ctrl_c(
+    signum, checkpointed, tmp_path, capsys, monkeypatch
+):
     from popsan_jax import ppo
+    from popsan_jax.checkpoint import INDEX, checkpoint_dir
 
     def killed_mid_training(config, run_dir, **_):
+        if checkpointed:  # the index of a run with one checkpoint saved
+            checkpoint_dir(run_dir).mkdir(parents=True)
+            entry = {"step": 1, "eval_index": 0, "success_rate": 0.0, "dir": "step_1"}
+            index = {"checkpoints": [entry], "last": 1, "best": 1}
+            (checkpoint_dir(run_dir) / INDEX).write_text(json.dumps(index))
         os.kill(os.getpid(), signum)
         time.sleep(5)  # the handler raises before this returns
         raise AssertionError("the signal did not stop the run")
@@ -231,4 +242,11 @@ def test_sigint_even_if_ignored_and_sigterm_stop_like_ctrl_c(signum, tmp_path, c
     finally:
         signal.signal(signal.SIGINT, ignored)
     assert code == 130
-    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("interrupted; the last")
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    if checkpointed:
+        assert last.startswith("interrupted; the last checkpoint is kept; resume with:"), last
+    else:
+        assert (
+            last
+            == f"interrupted before the first checkpoint; {tmp_path / 'r'} has nothing to resume"
+        )

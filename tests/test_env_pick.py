@@ -10,7 +10,7 @@ from _env_fixtures import BATCH, pick  # noqa: F401  (session fixture)
 from brax.envs.wrappers import training
 
 import envs
-from envs.franka_pick import Z_REST, pick_reward_terms
+from envs.franka_pick import Z_REST, is_held, pick_reward_terms, success_update
 from envs.panda import HOME_QPOS
 from popsan_jax.errors import ConfigError
 
@@ -40,6 +40,7 @@ def test_reset_and_step_shapes_finite_and_stable_avals(pick, stepped):  # noqa: 
         "goal_bonus",
         "action",
         "success",
+        "held",
     ]:
         assert nxt.metrics[name].shape == (BATCH,) and nxt.metrics[name].dtype == jnp.float32
 
@@ -76,29 +77,57 @@ def test_reward_terms_hand_computed():
     goal_z = 0.42
     left = jnp.array([0.5, 0.03, 0.02])
     right = jnp.array([0.5, -0.01, 0.02])
-    # On the floor: left tip 3 cm away, right tip 1 cm (clamped to 2 cm); not lifted.
-    t = pick_reward_terms(jnp.array([0.5, 0.0, 0.02]), left, right, goal_z, jnp.full(9, 0.5))
+
+    def terms(obj_z, radius, tips=(left, right), action=None):
+        obj = jnp.array([0.5, 0.0, obj_z])
+        action = jnp.zeros(9) if action is None else action
+        return pick_reward_terms(obj, *tips, goal_z, action, radius)
+
+    # PixMC's ungated terms (grasp_radius 0). On the floor: left tip 3 cm away, right tip 1 cm
+    # (clamped to 2 cm); not lifted.
+    t = terms(0.02, 0.0, action=jnp.full(9, 0.5))
     assert float(t["dist_left"]) == pytest.approx(1 / (0.04 + 0.03), rel=1e-5)
     assert float(t["dist_right"]) == pytest.approx(1 / (0.04 + 0.02), rel=1e-5)
     assert float(t["lift"]) == 0.0 and float(t["object_goal"]) == 0.0
     assert float(t["goal_bonus"]) == 0.0 and float(t["action"]) == pytest.approx(9 * 0.25)
     # Lifted to 3 cm below the goal: lift, object_goal = 1/(0.04+0.03) and the bonus.
-    t = pick_reward_terms(jnp.array([0.5, 0.0, 0.39]), left, right, goal_z, jnp.zeros(9))
+    t = terms(0.39, 0.0)
     assert float(t["lift"]) == 0.5 and float(t["goal_bonus"]) == 0.5
     assert float(t["object_goal"]) == pytest.approx(1 / 0.07, rel=1e-4)
     # Barely above the 1.5 cm lift threshold vs barely below it.
-    assert (
-        float(
-            pick_reward_terms(jnp.array([0.5, 0, 0.036]), left, right, goal_z, jnp.zeros(9))["lift"]
-        )
-        == 0.5
-    )
-    assert (
-        float(
-            pick_reward_terms(jnp.array([0.5, 0, 0.034]), left, right, goal_z, jnp.zeros(9))["lift"]
-        )
-        == 0.0
-    )
+    assert float(terms(0.036, 0.0)["lift"]) == 0.5 and float(terms(0.034, 0.0)["lift"]) == 0.0
+
+    # Grasp-gated (0.04 m): the same lifted cube far from the tips (a toss) earns no object term.
+    t = terms(0.39, 0.04)
+    assert float(t["lift"]) == float(t["object_goal"]) == float(t["goal_bonus"]) == 0.0
+    assert float(t["dist_left"]) == pytest.approx(1 / (0.04 + np.hypot(0.03, 0.37)), rel=1e-5)
+    # Between the pads (1.8 cm each side) it earns all three.
+    pads = (jnp.array([0.5, 0.018, 0.39]), jnp.array([0.5, -0.018, 0.39]))
+    t = terms(0.39, 0.04, tips=pads)
+    assert float(t["lift"]) == 0.5 and float(t["goal_bonus"]) == 0.5
+    assert float(t["object_goal"]) == pytest.approx(1 / 0.07, rel=1e-4)
+    assert float(t["dist_left"]) == pytest.approx(1 / (0.04 + 0.02), rel=1e-5)
+    # One pad 4.1 cm away: not held; 3.9 cm: held.
+    for gap, held in [(0.041, False), (0.039, True)]:
+        one_off = (jnp.array([0.5, gap, 0.39]), pads[1])
+        assert bool(is_held(jnp.float32(gap), jnp.float32(0.018), 0.04)) == held
+        assert float(terms(0.39, 0.04, tips=one_off)["lift"]) == (0.5 if held else 0.0)
+
+
+def test_success_update_matches_a_python_reference():
+    rng = np.random.default_rng(0)
+    at_goal = rng.random((64, 6)) < 0.8
+    held = rng.random((64, 6)) < 0.9
+    count, success = jnp.zeros(6), jnp.zeros(6)
+    ref_count, ref_success = [0] * 6, [0] * 6
+    for t in range(64):
+        count, success = success_update(count, success, jnp.array(at_goal[t]), jnp.array(held[t]))
+        for i in range(6):
+            ref_count[i] = ref_count[i] + 1 if at_goal[t, i] and held[t, i] else 0
+            ref_success[i] = 1 if ref_count[i] >= 10 or ref_success[i] else 0
+        np.testing.assert_array_equal(count, ref_count)
+        np.testing.assert_array_equal(success, ref_success)
+    assert 0 < np.mean(ref_success) < 1  # the sequence exercises both outcomes
 
 
 def _with_object(state, z, count=None, success=None):
@@ -116,27 +145,27 @@ def _with_object(state, z, count=None, success=None):
 def test_reward_and_success_latch_through_steps(pick):  # noqa: F811
     env = pick.env
     state = pick.reset(pick.keys(3))
-    # 9 steps already near the goal: this step makes 10 -> success; with 8 it is not yet.
-    counts = jnp.array([9.0, 8.0, 0.0, 9.0])
-    state = _with_object(state, env.goal_z, count=0.0)
-    state = state.replace(
-        pipeline_state=state.pipeline_state.replace(
-            userdata=state.pipeline_state.userdata.at[:, 0].set(counts)
-        )
-    )
+    # Teleport the cube to the goal while the open hand is far away (what a toss looks like):
+    # even 9 steps "near the goal" do not make a success, the counters reset and the object
+    # terms stay 0. A success latched earlier (env 3) stays. (Counting while held: the unit test
+    # above and the scripted grasp in test_env_scripted.)
+    state = _with_object(state, env.goal_z, count=9.0, success=jnp.array([0.0, 0.0, 0.0, 1.0]))
     nxt = pick.step(state, jnp.zeros((BATCH, 9)))
-    np.testing.assert_array_equal(nxt.metrics["success"], [1.0, 0.0, 0.0, 1.0])
-    np.testing.assert_array_equal(nxt.pipeline_state.userdata[:, 0], counts + 1)
+    np.testing.assert_array_equal(nxt.metrics["held"], 0.0)
+    np.testing.assert_array_equal(nxt.pipeline_state.userdata[:, 0], 0.0)
+    np.testing.assert_array_equal(nxt.metrics["success"], [0.0, 0.0, 0.0, 1.0])
+    for term in ("lift", "object_goal", "goal_bonus"):
+        np.testing.assert_array_equal(nxt.metrics[term], 0.0)
+    assert np.all(np.asarray(nxt.info["object_pos"])[:, 2] > env.goal_z - 0.05)
     # The step's reward is the scaled sum of its unscaled terms.
     scales = env.config.reward_scales
     expected = sum(scales[k] * np.asarray(nxt.metrics[k]) for k in scales)
     np.testing.assert_allclose(nxt.reward, expected, rtol=1e-5)
-    assert np.all(np.asarray(nxt.metrics["goal_bonus"]) == 0.5)
-    # Drop the cube back to the floor: the counter resets, the latched success stays.
+    assert np.all(np.asarray(nxt.reward) > 0)  # the dist terms
+    # Back on the floor: still nothing to count, the latched success stays.
     back = pick.step(_with_object(nxt, Z_REST), jnp.zeros((BATCH, 9)))
     np.testing.assert_array_equal(back.pipeline_state.userdata[:, 0], 0.0)
-    np.testing.assert_array_equal(back.metrics["success"], [1.0, 0.0, 0.0, 1.0])
-    assert np.all(np.asarray(back.metrics["lift"]) == 0.0)
+    np.testing.assert_array_equal(back.metrics["success"], [0.0, 0.0, 0.0, 1.0])
 
 
 def test_action_is_clipped_and_moves_servo_targets(pick, stepped):  # noqa: F811
