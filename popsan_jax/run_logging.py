@@ -56,7 +56,10 @@ class RunLogger:
         self._jsonl = open(self.run_dir / "metrics.jsonl", "a", buffering=1)
         from tensorboardX import SummaryWriter
 
-        self._tb = SummaryWriter(str(self.run_dir / "tb"))
+        # purge_step: TensorBoard hides the points an earlier, killed process logged past the
+        # checkpoint, as _drop_records_after does for the JSONL.
+        purge = initial_steps + 1 if initial_steps > 0 else None
+        self._tb = SummaryWriter(str(self.run_dir / "tb"), purge_step=purge)
         self._wandb = None
         if use_wandb:
             if not wandb_available():

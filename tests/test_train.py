@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import struct
 import subprocess
 import sys
 import time
@@ -16,6 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from _toy_env import PointPick, tiny_config
+from tensorboardX import SummaryWriter
+from tensorboardX.proto import event_pb2
 
 from popsan_jax import checkpoint, ppo, ppo_update
 from popsan_jax.errors import NonFiniteError
@@ -121,14 +124,38 @@ def test_resume_restores_state_and_continues_step_count(two_iteration_run, tmp_p
     with open(resumed_dir / "metrics.jsonl", "a") as f:
         f.write(json.dumps({"kind": "train", "env_steps": 3 * STEPS, "stale": True}) + "\n")
         f.write('{"kind": "train", "env_st')
+    with SummaryWriter(str(resumed_dir / "tb"), filename_suffix=".killed") as tb:
+        tb.add_scalar("train/entropy", 123.0, 3 * STEPS)
     more = config.replace(total_env_steps=4 * STEPS)
     out = ppo.train(more, resumed_dir, resume=True, environment=PointPick(), progress=False)
     records = read_metrics(resumed_dir, "train")
     assert [r["env_steps"] for r in records] == [STEPS, 2 * STEPS, 3 * STEPS, 4 * STEPS]
     assert not any(r.get("stale") for r in records)
+    entropy = _tensorboard_points(resumed_dir / "tb", "train/entropy")
+    assert [s for s, _ in entropy] == [STEPS, 2 * STEPS, 3 * STEPS, 4 * STEPS]
+    assert 123.0 not in [v for _, v in entropy]
     # the optimiser state continued: 4 iterations' worth of Adam steps, not 2
     assert _adam_counts(out.state.opt_state) == [32]
     assert checkpoint.read_index(resumed_dir)["last"] == 4 * STEPS
+
+
+def _tensorboard_points(tb_dir, tag: str) -> list[tuple[int, float]]:
+    """(step, value) points of ``tag`` as TensorBoard shows them: events files in write order,
+    where a SessionLog START at step S hides the points written before it at steps >= S."""
+    points: list[tuple[int, float]] = []
+    for path in sorted(tb_dir.glob("events.out.tfevents.*"), key=lambda p: p.stat().st_mtime_ns):
+        data = path.read_bytes()
+        pos = 0
+        while pos < len(data):  # TFRecord: u64 length, u32 crc, payload, u32 crc
+            (length,) = struct.unpack("<Q", data[pos : pos + 8])
+            event = event_pb2.Event.FromString(data[pos + 12 : pos + 12 + length])
+            pos += 12 + length + 4
+            if event.session_log.status == event_pb2.SessionLog.START:
+                points = [(s, v) for s, v in points if s < event.step]
+            for value in event.summary.value:
+                if value.tag == tag:
+                    points.append((event.step, value.simple_value))
+    return points
 
 
 def _nets_and_opt(config):
@@ -167,6 +194,8 @@ sys.path.insert(0, {tests!r})
 from popsan_jax.jax_setup import enable_compilation_cache
 enable_compilation_cache()
 from _toy_env import PointPick, tiny_config
+from tensorboardX import SummaryWriter
+from tensorboardX.proto import event_pb2
 from popsan_jax import ppo
 config = tiny_config(num_envs={num_envs}, batch_size={num_envs}, total_env_steps={total},
                      num_evals={evals})
