@@ -2,12 +2,15 @@
 
     python eval.py runs/<dir> [--best | --step N] [--episodes 1000] [--stochastic]
                    [--timesteps 1,2,3,4,5] [--ann-run runs/<mlp dir>] [--video out.mp4]
-                   [--no-energy] [--no-latency] [--no-tracking]
+                   [--no-energy] [--no-latency] [--no-tracking] [--env-override KEY=VALUE]
     python eval.py --compare runs/a runs/b ... [--out compare.png]
 
 Outputs go into the run directory: ``eval_<which>.json`` (report, energy rows, latency),
-``tracking_<which>.png``, ``energy_<which>.md`` and ``.csv``. Video rendering needs EGL or OSMesa
-(CPU machines: ``apt-get install -y libosmesa6``); see popsan_jax/video.py.
+``tracking_<which>.png``, ``energy_<which>.md`` and ``.csv``. ``--env-override`` evaluates under
+changed env settings (merged over the run's own) and appends them to ``<which>``, e.g.
+``eval_last+grasp_radius=0.0.json``, so the plain evaluation is never overwritten. Video
+rendering needs EGL or OSMesa (CPU machines: ``apt-get install -y libosmesa6``); see
+popsan_jax/video.py.
 A UserError (missing/corrupt/incompatible checkpoint, bad flag value) prints ``error: <msg>``
 and exits 2; argparse rejects unknown flags with exit 2.
 """
@@ -20,6 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from popsan_jax.cli import env_override, overrides_tag
 from popsan_jax.errors import UserError
 
 
@@ -38,6 +42,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-energy", action="store_true", help="skip the energy table")
     p.add_argument("--no-latency", action="store_true", help="skip the latency table")
     p.add_argument("--no-tracking", action="store_true", help="skip the tracking figure")
+    p.add_argument(
+        "--env-override",
+        type=env_override,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="evaluate with this env config value (repeatable)",
+    )
     p.add_argument("--latency-repeats", type=int, default=100, help=argparse.SUPPRESS)
     p.add_argument("--compare", nargs="+", metavar="RUN", help="plot training curves of runs")
     p.add_argument("--out", help="figure path for --compare (default compare.png)")
@@ -83,10 +95,11 @@ def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any
         ann_hidden = tuple(ann_cfg.actor_kwargs["hidden_sizes"])
     enable_compilation_cache()
     which = "best" if args.best else (args.step if args.step is not None else "last")
-    tag = evaluation.checkpoint_label(which)
+    overrides = dict(args.env_override)
+    tag = evaluation.checkpoint_label(which) + overrides_tag(overrides)
     run_dir = Path(args.run_dir)
     t0 = time.monotonic()
-    loaded = load_run(run_dir, which, environment=environment)
+    loaded = load_run(run_dir, which, environment=environment, env_overrides=overrides)
     print(
         f"loaded {run_dir} ({tag}, env step {loaded.step}); compiling and running "
         f"{args.episodes} episodes",
@@ -104,6 +117,7 @@ def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any
         policy="stochastic" if args.stochastic else "deterministic",
         actor=loaded.config.actor,
         timesteps=evaluation.trained_timesteps(loaded.config),
+        env_overrides=overrides,
         **evaluation.summarize(batch),
     )
     print(evaluation.format_report(report))

@@ -13,11 +13,12 @@ checkpoints/). Bad input prints one line ``error: ...`` and exits 2.
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import sys
 import time
 from pathlib import Path
+
+from popsan_jax.cli import env_override
 
 
 def _sizes(text: str) -> tuple[int, ...]:
@@ -28,16 +29,6 @@ def _sizes(text: str) -> tuple[int, ...]:
     if not sizes or min(sizes) < 1:
         raise argparse.ArgumentTypeError(f"expected positive sizes like 256,256, got {text!r}")
     return sizes
-
-
-def _override(text: str) -> tuple[str, object]:
-    key, sep, value = text.partition("=")
-    if not sep or not key:
-        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
-    try:
-        return key, json.loads(value)
-    except json.JSONDecodeError:
-        return key, value
 
 
 # flag -> RunConfig field (None default = "not given", so presets show through).
@@ -85,7 +76,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--resume", metavar="RUN_DIR", help="continue a run from its last checkpoint")
     p.add_argument(
         "--env-override",
-        type=_override,
+        type=env_override,
         action="append",
         default=[],
         metavar="KEY=VALUE",

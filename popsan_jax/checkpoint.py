@@ -170,12 +170,16 @@ class LoadedRun:
 
 
 def load_run(
-    run_dir: str | os.PathLike, which: str | int = "last", environment: Any = None
+    run_dir: str | os.PathLike,
+    which: str | int = "last",
+    environment: Any = None,
+    env_overrides: dict[str, Any] | None = None,
 ) -> LoadedRun:
     """Load a checkpoint (``"last"``, ``"best"`` or an env-step count) from a run directory.
 
-    ``environment`` replaces the env named in the config (for custom envs). Missing, corrupt or
-    incompatible data raises CheckpointError.
+    ``environment`` replaces the env named in the config (for custom envs); ``env_overrides``
+    are merged over the config's own (evaluating under changed env settings; an unknown key
+    raises ConfigError). Missing, corrupt or incompatible data raises CheckpointError.
     """
     from popsan_jax import ppo_update
     from popsan_jax.ppo import make_env
@@ -185,6 +189,14 @@ def load_run(
         raise CheckpointError(f"run directory {run_dir} does not exist")
     try:
         config = RunConfig.from_json(run_dir / CONFIG)
+    except ConfigError as e:
+        raise CheckpointError(f"run {run_dir} has an unusable config: {e}") from e
+    if env_overrides:
+        if environment is not None:
+            raise ConfigError("env overrides apply to the run's own env, not a custom one")
+        config = config.replace(env_overrides={**config.env_overrides, **env_overrides})
+        environment = make_env(config)  # an unknown key is the caller's ConfigError
+    try:
         env = environment if environment is not None else make_env(config)
         networks = ppo_update.build_networks(config, env.observation_size, env.action_size)
     except ConfigError as e:

@@ -5,6 +5,7 @@ Everything here is cheap: no env is compiled.
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import json
 import os
@@ -250,3 +251,17 @@ def test_sigint_even_if_ignored_and_sigterm_stop_like_ctrl_c(
             last
             == f"interrupted before the first checkpoint; {tmp_path / 'r'} has nothing to resume"
         )
+
+
+def test_env_override_argument_and_file_tag():
+    from popsan_jax.cli import env_override, overrides_tag
+
+    assert env_override("grasp_radius=0.0") == ("grasp_radius", 0.0)
+    assert env_override("object_x_range=[0.45, 0.55]") == ("object_x_range", [0.45, 0.55])
+    assert env_override("name=plain text") == ("name", "plain text")
+    for bad in ("no_equals", "=1"):
+        with pytest.raises(argparse.ArgumentTypeError, match="KEY=VALUE"):
+            env_override(bad)
+    assert overrides_tag({}) == ""
+    tag = overrides_tag({"grasp_radius": 0.0, "object_x_range": [0.45, 0.55], "a/b": "x y"})
+    assert tag == "+grasp_radius=0.0+object_x_range=0.45,0.55+ab=xy"

@@ -231,9 +231,18 @@ def test_cli_errors(trained, tmp_path, capsys):
     # Orbax may log its own traceback first (C's area); ours is the one final line.
     assert err.strip().splitlines()[-1].startswith("error: cannot restore checkpoint")
     assert eval_cli.main([str(run_dir), "--timesteps", "0,x", *fast], environment=env) == 2
-    with pytest.raises(SystemExit) as exc:
-        eval_cli.main([str(run_dir), "--no-such-flag"])
-    assert exc.value.code == 2
+    # An env override must name a key of the run's own env (here a registered one).
+    reach = tmp_path / "reach"
+    shutil.copytree(run_dir, reach)
+    cfg = json.loads((reach / "config.json").read_text())
+    (reach / "config.json").write_text(json.dumps({**cfg, "env": "franka_reach"}))
+    assert eval_cli.main([str(reach), "--env-override", "bogus=1", *fast]) == 2
+    assert "unknown config key 'bogus' for env 'franka_reach'" in capsys.readouterr().err
+    assert not list(reach.glob("eval_last+*"))
+    for argv in (["--no-such-flag"], ["--env-override", "no_equals_sign"]):
+        with pytest.raises(SystemExit) as exc:
+            eval_cli.main([str(run_dir), *argv])
+        assert exc.value.code == 2
     gc.collect()  # collect Orbax's leftovers (see pytestmark) while this module runs
 
 

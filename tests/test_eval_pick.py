@@ -64,3 +64,12 @@ def test_eval_cli_on_franka_pick(pick_run, capsys):
     assert "5 (trained)" in (run_dir / "energy_last.md").read_text()
     if "--video" in argv:
         assert video.stat().st_size > 1000 and "wrote" in out
+
+    # Under an env override: a 10 m grasp radius counts every step as held (the untrained
+    # policy holds nothing at the default 4 cm), written beside the plain report, not over it.
+    fast = ["--episodes", "4", "--no-energy", "--no-latency", "--no-tracking"]
+    assert eval_cli.main([str(run_dir), *fast, "--env-override", "grasp_radius=10"]) == 0
+    wide = json.loads((run_dir / "eval_last+grasp_radius=10.json").read_text())
+    assert wide["reward/held"] == 1.0 and wide["env_overrides"] == {"grasp_radius": 10}
+    plain = json.loads((run_dir / "eval_last.json").read_text())
+    assert plain["episodes"] == 8 and plain["reward/held"] < 0.5 and plain["env_overrides"] == {}
