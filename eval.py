@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from popsan_jax.cli import env_override, overrides_tag
+from popsan_jax.cli import add_env_override_flag, overrides_tag
 from popsan_jax.errors import UserError
 
 
@@ -42,14 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-energy", action="store_true", help="skip the energy table")
     p.add_argument("--no-latency", action="store_true", help="skip the latency table")
     p.add_argument("--no-tracking", action="store_true", help="skip the tracking figure")
-    p.add_argument(
-        "--env-override",
-        type=env_override,
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="evaluate with this env config value (repeatable)",
-    )
+    add_env_override_flag(p, "evaluate with this env config value (repeatable)")
     p.add_argument("--latency-repeats", type=int, default=100, help=argparse.SUPPRESS)
     p.add_argument("--compare", nargs="+", metavar="RUN", help="plot training curves of runs")
     p.add_argument("--out", help="figure path for --compare (default compare.png)")

@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from popsan_jax.cli import env_override
+from popsan_jax.cli import add_env_override_flag
 
 
 def _sizes(text: str) -> tuple[int, ...]:
@@ -74,14 +74,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--name", help="run directory name (default <env>-<actor>-<timestamp>)")
     p.add_argument("--runs-dir", default="runs", help="parent of run directories")
     p.add_argument("--resume", metavar="RUN_DIR", help="continue a run from its last checkpoint")
-    p.add_argument(
-        "--env-override",
-        type=env_override,
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="env config override (repeatable)",
-    )
+    add_env_override_flag(p, "env config override (repeatable)")
     p.add_argument("--wandb", action="store_true", default=None, help="also log to W&B")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     for name, (kind, text) in {**CONFIG_FLAGS, **ACTOR_FLAGS}.items():

@@ -18,6 +18,18 @@ def env_override(text: str) -> tuple[str, object]:
         return key, value
 
 
+def add_env_override_flag(parser: argparse.ArgumentParser, help_text: str) -> None:
+    """The repeatable ``--env-override KEY=VALUE`` flag (``args.env_override``: list of pairs)."""
+    parser.add_argument(
+        "--env-override",
+        type=env_override,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help=help_text,
+    )
+
+
 def overrides_tag(overrides: dict[str, object]) -> str:
     """File-name suffix naming env overrides, e.g. ``+grasp_radius=0.0`` ('' when none)."""
     text = "".join(f"+{k}={json.dumps(v, separators=(',', ':'))}" for k, v in overrides.items())
