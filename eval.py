@@ -8,7 +8,8 @@
 Outputs go into the run directory: ``eval_<which>.json`` (report, energy rows, latency),
 ``tracking_<which>.png``, ``energy_<which>.md`` and ``.csv``. ``--env-override`` evaluates under
 changed env settings (merged over the run's own) and appends them to ``<which>``, e.g.
-``eval_last+grasp_radius=0.0.json``, so the plain evaluation is never overwritten. Video
+``eval_last+grasp_radius=0.0.json``, as ``--stochastic`` appends ``+stochastic``, so the plain
+(deterministic) evaluation is never overwritten. Video
 rendering needs EGL or OSMesa (CPU machines: ``apt-get install -y libosmesa6``); see
 popsan_jax/video.py.
 A UserError (missing/corrupt/incompatible checkpoint, bad flag value) prints ``error: <msg>``
@@ -89,7 +90,8 @@ def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any
     enable_compilation_cache()
     which = "best" if args.best else (args.step if args.step is not None else "last")
     overrides = dict(args.env_override)
-    tag = evaluation.checkpoint_label(which) + overrides_tag(overrides)
+    policy = "+stochastic" if args.stochastic else ""
+    tag = evaluation.checkpoint_label(which) + policy + overrides_tag(overrides)
     run_dir = Path(args.run_dir)
     t0 = time.monotonic()
     loaded = load_run(run_dir, which, environment=environment, env_overrides=overrides)

@@ -204,6 +204,11 @@ def test_cli_best_and_step(trained):
     assert eval_cli.main([str(run_dir), "--best", *fast], environment=env) == 0
     best = json.loads((run_dir / "eval_best.json").read_text())
     assert best["env_steps"] == index["best"]
+    # A stochastic evaluation goes beside the deterministic one, not over it.
+    assert eval_cli.main([str(run_dir), "--best", "--stochastic", *fast], environment=env) == 0
+    sampled = json.loads((run_dir / "eval_best+stochastic.json").read_text())
+    assert sampled["policy"] == "stochastic" and sampled["which"] == "best+stochastic"
+    assert json.loads((run_dir / "eval_best.json").read_text())["policy"] == "deterministic"
 
 
 def test_cli_errors(trained, tmp_path, capsys):
