@@ -15,8 +15,8 @@ Observation (34, raw / un-normalised), in this order:
 
 Action (9): joint-target deltas in [-1, 1] (clipped here), see ``envs/panda.py``.
 
-Reward (PixMC's terms; ``state.metrics`` carries each UNSCALED term plus ``success`` and
-``held``)::
+Reward (PixMC's terms; ``state.metrics`` carries each UNSCALED term, ``held`` (0/1, not
+scaled into the reward) and ``success``)::
 
     dist_left/right = 1 / (0.04 + max(|obj - tip|, 0.02))        scale 0.08 each
     lift            = 0.5 if obj_z - z_rest > 0.015 and held       scale 4.0
@@ -108,7 +108,8 @@ def pick_reward_terms(
 ) -> dict[str, jax.Array]:
     """Unscaled reward terms for one env: ``obj``/tips ``[3]``, ``action`` ``[9]``.
 
-    The object terms (lift, object_goal, goal_bonus) count only while ``is_held``.
+    The object terms (lift, object_goal, goal_bonus) count only while ``is_held``; ``held``
+    itself (0/1) is returned too, for the success counter and the metrics (it has no scale).
     """
     d_left = jnp.linalg.norm(obj - left_tip)
     d_right = jnp.linalg.norm(obj - right_tip)
@@ -123,6 +124,7 @@ def pick_reward_terms(
             object_goal=jnp.where(lifted, 1.0 / (0.04 + og_d), 0.0),
             goal_bonus=jnp.where(held & (og_d <= 0.04), 0.5, 0.0),
             action=jnp.sum(jnp.square(action)),
+            held=held.astype(jnp.float32),
         )
     )
 
@@ -177,7 +179,7 @@ class FrankaPick(PandaEnv):
         data = self._initial_data(q, qpos=qpos)
         zeros = jnp.zeros(9)
         terms = self._terms(data, zeros)
-        metrics = dict(terms, success=jnp.zeros(()), held=self._held(data).astype(jnp.float32))
+        metrics = dict(terms, success=jnp.zeros(()))
         obs = self._obs(data)
         info = self._info(data, rng)
         reward = self._reward(terms)
@@ -186,20 +188,22 @@ class FrankaPick(PandaEnv):
     def step(self, state: State, action: jax.Array) -> State:
         data, action = self._physics_step(state.pipeline_state, action)
         obj = data.xpos[self._obj_body]
-        held = self._held(data)
+        raw_terms = self._terms(data, action)
         at_goal = jnp.abs(self.goal_z - obj[2]) <= self._goal_tol
         # userdata = [consecutive steps near the goal while held, latched success]
-        count, success = success_update(data.userdata[0], data.userdata[1], at_goal, held)
+        count, success = success_update(
+            data.userdata[0], data.userdata[1], at_goal, raw_terms["held"] > 0
+        )
         data = data.replace(userdata=jnp.stack([count, success]).astype(jnp.float32))
 
         bad = self._non_finite(data)
         fell = obj[2] < Z_REST - 0.04
         away = jnp.linalg.norm(obj[:2]) > 1.2
         done = bad | fell | away
-        terms = jax.tree.map(lambda x: jnp.where(bad, 0.0, x), self._terms(data, action))
+        terms = jax.tree.map(lambda x: jnp.where(bad, 0.0, x), raw_terms)
         reward = jnp.where(bad, 0.0, self._reward(terms))
         # Keep metrics that wrappers added (Brax's EvalWrapper adds "reward" at reset).
-        metrics = {**state.metrics, **terms, "success": success, "held": held.astype(jnp.float32)}
+        metrics = {**state.metrics, **terms, "success": success}
         obs = self._sanitize(self._obs(data))
         info = {**state.info, **self._info(data, state.info["rng"])}
         return State(
@@ -216,13 +220,6 @@ class FrankaPick(PandaEnv):
         left, right = self._tips(data)
         return pick_reward_terms(
             data.xpos[self._obj_body], left, right, self.goal_z, action, self._grasp_radius
-        )
-
-    def _held(self, data) -> jax.Array:
-        obj = data.xpos[self._obj_body]
-        left, right = self._tips(data)
-        return is_held(
-            jnp.linalg.norm(obj - left), jnp.linalg.norm(obj - right), self._grasp_radius
         )
 
     def _obs(self, data) -> jax.Array:

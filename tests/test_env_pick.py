@@ -92,6 +92,7 @@ def test_reward_terms_hand_computed():
     assert float(t["goal_bonus"]) == 0.0 and float(t["action"]) == pytest.approx(9 * 0.25)
     # Lifted to 3 cm below the goal: lift, object_goal = 1/(0.04+0.03) and the bonus.
     t = terms(0.39, 0.0)
+    assert float(t["held"]) == 1.0  # ungated: every cube counts as held
     assert float(t["lift"]) == 0.5 and float(t["goal_bonus"]) == 0.5
     assert float(t["object_goal"]) == pytest.approx(1 / 0.07, rel=1e-4)
     # Barely above the 1.5 cm lift threshold vs barely below it.
@@ -100,10 +101,12 @@ def test_reward_terms_hand_computed():
     # Grasp-gated (0.04 m): the same lifted cube far from the tips (a toss) earns no object term.
     t = terms(0.39, 0.04)
     assert float(t["lift"]) == float(t["object_goal"]) == float(t["goal_bonus"]) == 0.0
+    assert float(t["held"]) == 0.0
     assert float(t["dist_left"]) == pytest.approx(1 / (0.04 + np.hypot(0.03, 0.37)), rel=1e-5)
     # Between the pads (1.8 cm each side) it earns all three.
     pads = (jnp.array([0.5, 0.018, 0.39]), jnp.array([0.5, -0.018, 0.39]))
     t = terms(0.39, 0.04, tips=pads)
+    assert float(t["held"]) == 1.0
     assert float(t["lift"]) == 0.5 and float(t["goal_bonus"]) == 0.5
     assert float(t["object_goal"]) == pytest.approx(1 / 0.07, rel=1e-4)
     assert float(t["dist_left"]) == pytest.approx(1 / (0.04 + 0.02), rel=1e-5)
