@@ -9,8 +9,8 @@ Outputs go into the run directory: ``eval_<which>.json`` (report, energy rows, l
 ``tracking_<which>.png``, ``energy_<which>.md`` and ``.csv``. ``--env-override`` evaluates under
 changed env settings (merged over the run's own) and appends them to ``<which>``, e.g.
 ``eval_last+grasp_radius=0.0.json``, as ``--stochastic`` appends ``+stochastic``, so the plain
-(deterministic) evaluation is never overwritten. Video
-rendering needs EGL or OSMesa (CPU machines: ``apt-get install -y libosmesa6``); see
+(deterministic) evaluation is never overwritten.
+Video rendering needs EGL or OSMesa (CPU machines: ``apt-get install -y libosmesa6``); see
 popsan_jax/video.py.
 A UserError (missing/corrupt/incompatible checkpoint, bad flag value) prints ``error: <msg>``
 and exits 2; argparse rejects unknown flags with exit 2.

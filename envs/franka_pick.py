@@ -13,7 +13,14 @@ Observation (34, raw / un-normalised), in this order:
 33     goal_z - object_z
 ====== ========================================================================
 
-Action (9): joint-target deltas in [-1, 1] (clipped here), see ``envs/panda.py``.
+Action (9): joint-target deltas in [-1, 1] (clipped here), see ``envs/panda.py``, with
+``action_scale`` 2.0 instead of PixMC's 7.5: 0.04 rad per unit action per 50 Hz step
+(Playground's PandaPickCube also moves its targets 0.04 rad per step) instead of 0.15 rad.
+Why: a Gaussian policy explores by adding noise to every action, and at 0.15 rad per step
+N(0, 0.1^2) noise on the scripted grasp's actions already breaks it (success 95 % -> 2 %),
+while at 0.04 rad it still succeeds 87 % of the time (``docs/results/grasp_noise.py``).
+Trained with PixMC's scale, neither actor carried the cube up in 16-22 M steps; with 2.0 both
+held it within 2-5 M steps (docs/results.md). ``action_scale=7.5`` restores PixMC's semantics.
 
 Reward (PixMC's terms; ``state.metrics`` carries each UNSCALED term, ``held`` (0/1, not
 scaled into the reward) and ``success``)::
@@ -81,6 +88,7 @@ SUCCESS_STEPS = 10
 def default_config() -> ml_collections.ConfigDict:
     """Default franka_pick config (override keys through ``envs.get_environment``)."""
     return base_config(
+        action_scale=2.0,
         episode_length=200,
         lift_height=0.4,
         grasp_radius=0.04,

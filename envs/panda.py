@@ -4,8 +4,12 @@ The robot (``assets/panda.xml``) has 9 actuated joints: 7 arm joints and 2 finge
 driven by a position servo whose target is ``data.ctrl``. The action (9 values, clipped to
 [-1, 1] here) moves those targets, as in PixMC's FrankaPick::
 
-    target += speed_scale * ctrl_dt * action * 7.5      # speed_scale 1 (arm), 0.1 (fingers)
+    target += speed_scale * ctrl_dt * action * action_scale   # speed_scale 1 (arm), 0.1 (fingers)
     target  = clip(target, joint_lower, joint_upper)
+
+``action_scale`` is PixMC's 7.5 by default (0.15 rad per 50 Hz step at full action; franka_reach).
+franka_pick uses 2.0, because PixMC's scale leaves no room for exploration noise in a grasp (see
+its module docstring).
 
 Everything an episode needs to carry across steps (servo targets, success counters, the reach
 target) lives inside the ``mjx.Data`` (``ctrl``, ``userdata``, ``mocap_pos``), not in
@@ -36,24 +40,24 @@ FINGER_JOINTS = ("finger_joint1", "finger_joint2")
 JOINTS = ARM_JOINTS + FINGER_JOINTS
 # Home pose (DESIGN.md): hand ~0.55 m in front of the base, ~0.62 m up, pointing down; fingers open.
 HOME_QPOS = np.array([0.0, 0.0, 0.0, -np.pi / 2, 0.0, np.pi / 2, -np.pi / 4, 0.04, 0.04])
-ACTION_SCALE = 7.5
+ACTION_SCALE = 7.5  # PixMC's
 SPEED_SCALE = np.array([1.0] * 7 + [0.1] * 2)
 NUM_ACTUATORS = 9
 
 
 def base_config(**fields: Any) -> ml_collections.ConfigDict:
-    """Physics/control fields shared by the Panda envs, plus the env-specific ``fields``."""
-    config = ml_collections.ConfigDict(
-        dict(
-            ctrl_dt=0.02,
-            sim_dt=0.02,
-            iterations=4,
-            ls_iterations=6,
-            init_joint_noise=0.125,
-            **fields,
-        )
+    """Physics/control fields shared by the Panda envs, updated with the env-specific ``fields``
+    (which may replace a shared default, e.g. ``action_scale``)."""
+    values: dict[str, Any] = dict(
+        ctrl_dt=0.02,
+        sim_dt=0.02,
+        iterations=4,
+        ls_iterations=6,
+        init_joint_noise=0.125,
+        action_scale=ACTION_SCALE,
     )
-    return config
+    values.update(fields)
+    return ml_collections.ConfigDict(values)
 
 
 def apply_overrides(
@@ -91,6 +95,8 @@ def apply_overrides(
         raise ConfigError(
             f"ctrl_dt ({config.ctrl_dt}) must be a positive multiple of sim_dt ({config.sim_dt})"
         )
+    if not config.action_scale > 0:
+        raise ConfigError(f"action_scale must be > 0, got {config.action_scale}")
     if config.episode_length < 1:
         raise ConfigError(f"episode_length must be >= 1, got {config.episode_length}")
     config.lock()
@@ -128,7 +134,7 @@ class PandaEnv(Env):
         self._qvel_adr = np.array([j.dofadr[0] for j in jnt])
         self._lower = np.array([j.range[0] for j in jnt], dtype=np.float32)
         self._upper = np.array([j.range[1] for j in jnt], dtype=np.float32)
-        self._step_scale = (SPEED_SCALE * config.ctrl_dt * ACTION_SCALE).astype(np.float32)
+        self._step_scale = (SPEED_SCALE * config.ctrl_dt * config.action_scale).astype(np.float32)
         self._left_tip = m.site("left_tip").id
         self._right_tip = m.site("right_tip").id
         self._template = mjx.make_data(self._mjx_model)
@@ -159,6 +165,11 @@ class PandaEnv(Env):
         return "mjx"
 
     # ----- shared pieces ------------------------------------------------------------------
+    @property
+    def action_step(self) -> np.ndarray:
+        """Servo-target change per unit action per control step ``[9]`` (rad; m for fingers)."""
+        return self._step_scale.copy()
+
     def joint_limits(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper limits ``[9]`` of the 9 actuated joints."""
         return self._lower.copy(), self._upper.copy()

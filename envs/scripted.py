@@ -28,7 +28,7 @@ def make_scripted_pick_policy(env: FrankaPick):
     grasp = env.mj_model.site("grasp").id
     qadr = jnp.asarray(env._qpos_adr[:7])
     obj_body = env._obj_body
-    step_scale = jnp.asarray(env._step_scale)
+    step_scale = jnp.asarray(env.action_step)
     template = env._template
 
     def site_pose(q_arm):

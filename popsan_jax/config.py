@@ -199,30 +199,32 @@ PRESETS: dict[str, dict[str, Any]] = {
         keep_every_n_evals=1,
         critic_hidden_sizes=(64, 64),
     ),
-    # The issue-6 headline run (franka_pick, the paper's PopSAN shape), sized for one GPU:
-    # 4096 envs as Playground-scale MJX training uses, 16-step unrolls, 262,144 env steps per
-    # iteration, ~380 iterations = 100 M steps; PixMC's gamma 0.99 / lambda 0.95 and cosine lr.
-    # The paper's actor/critic lrs (1e-5 / 1e-4) were tuned for PixMC's 8 k-step batches; the
-    # large batch here takes 3e-4 / 1e-3 (the critic's 1e-3 is PixMC's lr).
+    # The issue-6 headline run on franka_pick, exactly the settings of the seed-0 runs that
+    # learned the pick (docs/results.md, 30 November): 512 envs, 10-step unrolls, 8 minibatches
+    # of 256 sequences, 4 epochs, gamma 0.97, constant lr 3e-4 (actor) / 1e-3 (critic, PixMC's),
+    # entropy 1e-3, 40 M steps with an evaluation every 250 k. On this 2-core CPU the MLP reached
+    # 93 % after 20 M steps (1.4 h sharing the cores with PopSAN, which trains at ~4.2 k steps/s
+    # alone); a GPU runs it much faster. The paper's lrs (1e-5 / 1e-4) were tuned for PixMC's
+    # 8 k-step batches.
     "paper": dict(
         env="franka_pick",
         actor="popsan",
-        num_envs=4096,
-        batch_size=1024,
-        num_minibatches=16,
-        unroll_length=16,
-        num_updates_per_batch=8,
-        total_env_steps=100_000_000,
+        num_envs=512,
+        batch_size=256,
+        num_minibatches=8,
+        unroll_length=10,
+        num_updates_per_batch=4,
+        total_env_steps=40_000_000,
         actor_lr=3e-4,
         critic_lr=1e-3,
-        lr_schedule="cosine",
-        discounting=0.99,
+        lr_schedule="constant",
+        discounting=0.97,
         gae_lambda=0.95,
         clipping_epsilon=0.2,
         entropy_cost=1e-3,
-        num_evals=50,
-        num_eval_envs=256,
-        keep_every_n_evals=10,
+        num_evals=160,
+        num_eval_envs=64,
+        keep_every_n_evals=5,
     ),
 }
 

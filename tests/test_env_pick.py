@@ -176,11 +176,26 @@ def test_action_is_clipped_and_moves_servo_targets(pick, stepped):  # noqa: F811
     action = jnp.tile(jnp.array([5.0, -5.0, 0.3, 0, 0, 0, 0, -7.0, 2.0]), (BATCH, 1))
     nxt = pick.step(state, action)
     delta = np.asarray(nxt.pipeline_state.ctrl - state.pipeline_state.ctrl)
-    # dt 0.02 x 7.5 = 0.15 rad per unit action (arm), x 0.1 for the fingers; fingers start open
-    # at their 0.04 upper limit, so +2 stays clamped there.
-    np.testing.assert_allclose(delta[:, :3], [[0.15, -0.15, 0.045]] * BATCH, atol=1e-5)
-    np.testing.assert_allclose(delta[:, 7:], [[-0.015, 0.0]] * BATCH, atol=1e-6)
+    # dt 0.02 x action_scale 2.0 = 0.04 rad per unit action (arm), x 0.1 for the fingers;
+    # fingers start open at their 0.04 upper limit, so +2 stays clamped there.
+    np.testing.assert_allclose(delta[:, :3], [[0.04, -0.04, 0.012]] * BATCH, atol=1e-6)
+    np.testing.assert_allclose(delta[:, 7:], [[-0.004, 0.0]] * BATCH, atol=1e-6)
     assert float(nxt.metrics["action"][0]) == pytest.approx(1 + 1 + 0.09 + 1 + 1, rel=1e-5)
+
+
+def test_action_scale_config_sets_the_servo_step():
+    # franka_pick's 2.0 at dt 0.02: 0.04 rad (arm) and 0.004 m (fingers, speed 0.1) per unit
+    # action; PixMC's 7.5 (franka_reach's default): 0.15 and 0.015. The stepped test above
+    # checks that the physics step moves the targets by exactly this vector.
+    np.testing.assert_allclose(
+        envs.get_environment("franka_pick").action_step, [0.04] * 7 + [0.004] * 2, rtol=1e-6
+    )
+    pixmc = envs.get_environment("franka_pick", action_scale=7.5)
+    np.testing.assert_allclose(pixmc.action_step, [0.15] * 7 + [0.015] * 2, rtol=1e-6)
+    reach = envs.get_environment("franka_reach")
+    np.testing.assert_allclose(reach.action_step, pixmc.action_step, rtol=1e-6)
+    with pytest.raises(ConfigError, match="action_scale must be > 0"):
+        envs.get_environment("franka_reach", action_scale=0.0)
 
 
 def test_nan_ends_only_that_env(pick, stepped):  # noqa: F811

@@ -3,8 +3,9 @@
 # the evaluations of evaluate_study.sh (energy per T on every seed, latency, curves).
 #
 # Usage: bash docs/results/pick_study.sh [RUNS_DIR] [train.py flags...]
-#   default flags: --preset paper (4096 envs, 100 M steps per run: sized for one GPU).
-#   On this 2-core CPU one such run takes days; see docs/results.md for what was run here.
+#   default flags: --preset paper (512 envs, 40 M steps per run, the settings of the seed-0
+#   pick runs in docs/results.md). On this 2-core CPU a run takes 1.5-3 h alone (a run stopped
+#   with Ctrl-C resumes where it stopped when this script is run again).
 # Re-running it resumes every run from its last checkpoint (a finished one stops after compiling).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
