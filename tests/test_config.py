@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 from brax.training.agents.ppo import losses as ppo_losses
 
+import envs
 from popsan_jax import checkpoint
 from popsan_jax.config import POPSAN_DEFAULTS, PRESETS, RunConfig, resolve_config
 from popsan_jax.errors import CheckpointError, ConfigError
@@ -76,8 +77,19 @@ def test_every_preset_and_backend_default_is_valid():
     for backend in ("cpu", "gpu"):
         for preset in (None, *PRESETS):
             resolve_config(preset, backend).validate(1)
-    paper = resolve_config("paper", "cpu")
-    assert paper.num_envs >= 1024 and paper.env == "franka_pick"
+
+
+def test_paper_preset_is_the_committed_pick_run_that_learned():
+    # `--preset paper` must reproduce docs/results/pick_scale/popsan-s0 (95.5 % success): the
+    # same RunConfig, its env override (action_scale 2.0) being franka_pick's default now.
+    run_dir = ROOT / "docs/results/pick_scale/popsan-s0"
+    committed = RunConfig.from_json(run_dir / "config.json")
+    overrides = dict(committed.env_overrides)
+    env_defaults = envs.default_config("franka_pick")
+    assert all(env_defaults[k] == v for k, v in overrides.items()), overrides
+    for backend in ("cpu", "gpu"):
+        paper = resolve_config("paper", backend, dict(seed=committed.seed))
+        assert paper == committed.replace(env_overrides={}), backend
 
 
 @pytest.mark.parametrize(
