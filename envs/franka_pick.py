@@ -20,7 +20,8 @@ Why: a Gaussian policy explores by adding noise to every action, and at 0.15 rad
 N(0, 0.1^2) noise on the scripted grasp's actions already breaks it (success 95 % -> 2 %),
 while at 0.04 rad it still succeeds 87 % of the time (``docs/results/grasp_noise.py``).
 Trained with PixMC's scale, neither actor carried the cube up in 16-22 M steps; with 2.0 both
-held it within 2-5 M steps (docs/results.md). ``action_scale=7.5`` restores PixMC's semantics.
+held it within 1.2-2.5 M steps and passed 90 % success (seed 0, docs/results.md).
+``action_scale=7.5`` restores PixMC's semantics.
 
 Reward (PixMC's terms; ``state.metrics`` carries each UNSCALED term, ``held`` (0/1, not
 scaled into the reward) and ``success``)::
@@ -62,10 +63,10 @@ is 4 explicit pairs, and the solver runs Newton with 4 iterations / 6 line-searc
 MJX's ``max_contact_points`` caps the TOTAL number of contacts (not per pair): 12 leaves room for
 the cube-floor box (4) plus both box pads; with 4 the pads got no contacts at all. The grasp
 holds at 50 Hz with box pads (pair friction 1.5) squeezing a 50 g cube at <= 20 N per finger; the
-scripted grasp (``envs/scripted.py``) checks it: 97 % success on 64 random episodes. The contact
-stays soft at 50 Hz, so a held cube creeps slowly; ~10-15 % slip out 1.5-2 s after reaching the
-goal (success has latched by then). Elliptic cones (impratio 10) and a stiffer pad solimp made
-the grasp fail outright in MJX here.
+scripted grasp (``envs/scripted.py``) checks it: 97 % success on 64 random episodes (at PixMC's
+action scale). The contact stays soft at 50 Hz, so a held cube creeps slowly; ~10-15 % slip
+out 1.5-2 s after reaching the goal (success has latched by then). Elliptic cones (impratio
+10) and a stiffer pad solimp made the grasp fail outright in MJX here.
 episode_length 200 steps = 4 s (PixMC: 500 steps at 60 Hz = 8.3 s); the scripted
 grasp-and-lift reaches success after about 2.5 s, leaving room for a learned policy.
 """
