@@ -47,7 +47,7 @@ def main() -> None:
             done = jnp.maximum(done, state.done)
             return (state, done), (state.metrics["held"], state.info["object_pos"][:, 2])
 
-        keys = jax.random.split(k1, 200)
+        keys = jax.random.split(k1, env.config.episode_length)
         (state, done), (held, z) = jax.lax.scan(body, (state, jnp.zeros(N)), keys)
         return state.metrics["success"], done, held.mean(), z.max(0)
 
