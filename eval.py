@@ -9,7 +9,8 @@ Outputs go into the run directory: ``eval_<which>.json`` (report, energy rows, l
 ``tracking_<which>.png``, ``energy_<which>.md`` and ``.csv``. ``--env-override`` evaluates under
 changed env settings (merged over the run's own) and appends them to ``<which>``, e.g.
 ``eval_last+grasp_radius=0.0.json``, as ``--stochastic`` appends ``+stochastic``, so the plain
-(deterministic) evaluation is never overwritten.
+(deterministic) evaluation is never overwritten. ``--compare`` writes the curves figure and, beside
+it (``compare.md``), the table of env steps to the first 50/80/90 % success per run and per actor.
 Video rendering needs EGL or OSMesa (CPU machines: ``apt-get install -y libosmesa6``); see
 popsan_jax/video.py.
 A UserError (missing/corrupt/incompatible checkpoint, bad flag value) prints ``error: <msg>``
@@ -45,7 +46,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-tracking", action="store_true", help="skip the tracking figure")
     add_env_override_flag(p, "evaluate with this env config value (repeatable)")
     p.add_argument("--latency-repeats", type=int, default=100, help=argparse.SUPPRESS)
-    p.add_argument("--compare", nargs="+", metavar="RUN", help="plot training curves of runs")
+    p.add_argument(
+        "--compare",
+        nargs="+",
+        metavar="RUN",
+        help="plot training curves of runs and tabulate steps to 50/80/90 %% success",
+    )
     p.add_argument("--out", help="figure path for --compare (default compare.png)")
     return p
 
@@ -61,10 +67,16 @@ def parse_timesteps(text: str) -> list[int]:
 
 
 def compare(runs: list[str], out: str | None) -> None:
+    """Curves figure, and the sample-efficiency table printed and written beside it (``.md``)."""
     from popsan_jax import plots
+    from popsan_jax.sample_efficiency import sample_efficiency_table
 
-    path = plots.plot_compare([plots.read_run_curves(r) for r in runs], out or "compare.png")
-    print(f"wrote {path}")
+    curves = [plots.read_run_curves(r) for r in runs]
+    path = plots.plot_compare(curves, out or "compare.png")
+    table = sample_efficiency_table(curves)
+    path.with_suffix(".md").write_text(table + "\n")
+    print(table)
+    print(f"wrote {path} and {path.with_suffix('.md')}")
 
 
 def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any]:

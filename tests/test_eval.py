@@ -256,6 +256,8 @@ def test_cli_compare(trained, tmp_path):
     out = tmp_path / "cmp.png"
     assert eval_cli.main(["--compare", str(run_dir), str(run_dir), "--out", str(out)]) == 0
     assert out.stat().st_size > 5000
+    table = (tmp_path / "cmp.md").read_text()  # the sample-efficiency table beside the figure
+    assert table.startswith("env steps to the first") and table.count(f"| {run_dir.name} |") == 2
     assert eval_cli.main(["--compare", str(tmp_path)]) == 2
 
 
