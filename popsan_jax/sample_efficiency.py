@@ -7,7 +7,6 @@ module reads it off the ``eval`` lines (``RunCurves``) of several seeds and summ
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -32,18 +31,30 @@ def _steps(value: float | None) -> str:
     return "—" if value is None else f"{value / 1e6:.2f} M"
 
 
-def _summary(values: list[float | None]) -> tuple[str, float | None]:
-    """``"mean (min–max)"`` over the runs that reached the level, and the mean when all did."""
-    reached = [v for v in values if v is not None]
-    if not reached:
-        return f"— (0 of {len(values)})", None
-    mean = sum(reached) / len(reached)
+def _summary(values: list[float | None], lasts: list[float]) -> tuple[str, float, bool]:
+    """``"mean (min–max)"`` over the runs, the mean, and whether it is exact.
+
+    A run that never reached the level is censored: it needs more steps than its last evaluation,
+    so with its last step counted the mean becomes a lower bound (``"≥ …"``, exact = False).
+    """
+    filled = [v if v is not None else last for v, last in zip(values, lasts, strict=True)]
+    mean = sum(filled) / len(filled)
     text = _steps(mean)
-    if len(reached) > 1:
-        text += f" ({min(reached) / 1e6:.2f}–{max(reached) / 1e6:.2f})"
-    if len(reached) < len(values):
-        return f"{text} ({len(reached)} of {len(values)} reached)", None
-    return text, mean
+    if len(filled) > 1:
+        text += f" ({min(filled) / 1e6:.2f}–{max(filled) / 1e6:.2f})"
+    reached = sum(v is not None for v in values)
+    if reached == len(values):
+        return text, mean, True
+    return f"≥ {text}, {reached} of {len(values)} reached", mean, False
+
+
+def _ratio(popsan: tuple[float, bool], mlp: tuple[float, bool]) -> str:
+    """PopSAN / MLP mean; a bound when one side is a lower bound, — when both are."""
+    (p, p_exact), (m, m_exact) = popsan, mlp
+    if m <= 0 or not (p_exact or m_exact):
+        return "—"
+    prefix = "" if p_exact and m_exact else ("≤ " if p_exact else "≥ ")
+    return f"**{prefix}{p / m:.2f}**"
 
 
 def sample_efficiency_table(
@@ -51,8 +62,9 @@ def sample_efficiency_table(
 ) -> str:
     """Markdown table: per run, per actor (mean and range over runs), and PopSAN / MLP.
 
-    The ratio row is the ratio of the per-actor means; it is left out (—) at a level that some
-    run of either actor never reached, since a mean over the runs that did would flatter it.
+    A run that never reached a level counts with its last evaluated step, which makes its actor's
+    mean a lower bound; the ratio of the means is then an upper (MLP censored) or lower (PopSAN
+    censored) bound, and is left out (—) when both are censored.
     """
     if not runs:
         raise ValueError("no runs to compare")
@@ -73,18 +85,18 @@ def sample_efficiency_table(
             k = int(np.nanargmax(success))
             best = f"{success[k]:.3f} ({_steps(float(run.env_steps[k]))})"
         lines.append(f"| {run.label} | {run.actor} | {cells} | {best} |")
-    means: dict[str, list[float | None]] = {}
+    means: dict[str, list[tuple[float, bool]]] = {}
     for actor in dict.fromkeys(run.actor for run in runs):
-        group = [firsts[id(run)] for run in runs if run.actor == actor]
-        summaries = [_summary([g[i] for g in group]) for i in range(len(levels))]
-        means[actor] = [mean for _, mean in summaries]
-        cells = " | ".join(text for text, _ in summaries)
+        group = [run for run in runs if run.actor == actor]
+        lasts = [float(run.env_steps[-1]) for run in group]
+        summaries = [
+            _summary([firsts[id(run)][i] for run in group], lasts) for i in range(len(levels))
+        ]
+        means[actor] = [(mean, exact) for _, mean, exact in summaries]
+        cells = " | ".join(text for text, _, _ in summaries)
         name = ACTOR_NAMES.get(actor, actor)
         lines.append(f"| mean (range), {len(group)} run(s) | {name} | {cells} | |")
     if "popsan" in means and "mlp" in means:
-        ratios = [
-            "—" if p is None or m is None or m == 0 or math.isnan(p / m) else f"**{p / m:.2f}**"
-            for p, m in zip(means["popsan"], means["mlp"], strict=True)
-        ]
+        ratios = [_ratio(p, m) for p, m in zip(means["popsan"], means["mlp"], strict=True)]
         lines.append(f"| PopSAN / MLP, ratio of means | | {' | '.join(ratios)} | |")
     return "\n".join(lines)

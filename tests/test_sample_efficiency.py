@@ -41,11 +41,23 @@ def test_table_means_ranges_and_ratio():
     popsan_mean, mlp_mean = [line for line in lines if line.startswith("| mean")]
     # PopSAN at 80 %: mean(1, 3) = 2 M, range 1-3; at 90 %: mean(2, 4) = 3 M.
     assert "| PopSAN | 2.00 M (1.00–3.00) | 3.00 M (2.00–4.00) |" in popsan_mean
-    # MLP at 80 %: mean(4, 8) = 6 M; at 90 % only mlp-s0 reached, so no mean claims all seeds.
-    assert "| MLP | 6.00 M (4.00–8.00) | 6.00 M (1 of 2 reached) |" in mlp_mean
+    # MLP at 80 %: mean(4, 8) = 6 M. At 90 % mlp-s1 never got there by its last evaluation at
+    # 9 M, so it needs more than 9 M: the mean (6 + 9) / 2 = 7.5 M is only a lower bound.
+    assert "| MLP | 6.00 M (4.00–8.00) | ≥ 7.50 M (6.00–9.00), 1 of 2 reached |" in mlp_mean
     ratio = lines[-1]
     assert ratio.startswith("| PopSAN / MLP") and "**0.33**" in ratio  # 2 M / 6 M
-    assert ratio.count("—") == 1  # the 90 % ratio is withheld
+    assert "**≤ 0.40**" in ratio  # 3 M / (more than 7.5 M): an upper bound
+
+
+def test_ratio_bounds_when_popsan_or_both_are_censored():
+    runs = [
+        _curves("p", "popsan", [(0, 0.0), (2e6, 0.85), (5e6, 0.88)]),  # 90 %: never, by 5 M
+        _curves("m", "mlp", [(0, 0.0), (4e6, 0.95)]),
+    ]
+    ratio = sample_efficiency_table(runs, levels=(0.8, 0.9, 0.99)).splitlines()[-1]
+    cells = [c.strip() for c in ratio.strip("|").split("|")][2:5]
+    # 80 %: 2 / 4; 90 %: PopSAN needs > 5 M against 4 M -> at least 1.25; 99 %: both censored.
+    assert cells == ["**0.50**", "**≥ 1.25**", "—"]
 
 
 def test_table_single_actor_has_no_ratio_and_empty_input_is_an_error():
