@@ -28,6 +28,8 @@ from typing import Any
 from popsan_jax.cli import add_env_override_flag, overrides_tag
 from popsan_jax.errors import UserError
 
+FIGURE_SUFFIXES = (".png", ".pdf", ".svg")
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
@@ -52,7 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="RUN",
         help="plot training curves of runs and tabulate steps to 50/80/90 %% success",
     )
-    p.add_argument("--out", help="figure path for --compare (default compare.png)")
+    p.add_argument(
+        "--out", help="figure path for --compare: .png, .pdf or .svg (default compare.png)"
+    )
     return p
 
 
@@ -71,8 +75,14 @@ def compare(runs: list[str], out: str | None) -> None:
     from popsan_jax import plots
     from popsan_jax.sample_efficiency import sample_efficiency_table
 
+    out = Path(out or "compare.png")
+    if out.suffix.lower() not in FIGURE_SUFFIXES:
+        # The table is written to the figure's path with .md: a .md figure would be overwritten.
+        raise UserError(
+            f"--out is the figure's path ({', '.join(FIGURE_SUFFIXES)}); got {str(out)!r}"
+        )
     curves = [plots.read_run_curves(r) for r in runs]
-    path = plots.plot_compare(curves, out or "compare.png")
+    path = plots.plot_compare(curves, out)
     table = sample_efficiency_table(curves)
     path.with_suffix(".md").write_text(table + "\n")
     print(table)

@@ -140,7 +140,10 @@ def plot_compare(runs: Sequence[RunCurves], path: str | os.PathLike) -> Path:
     if not runs:
         raise ValueError("no runs to compare")
     plt = _pyplot()
-    fig, axes = plt.subplots(1, len(CURVE_KEYS), figsize=(5 * len(CURVE_KEYS), 3.8))
+    # The legend sits under the panels: inside the success panel it hid the curves at 6 runs.
+    legend_cols = min(len(runs), 3)
+    legend_in = 0.22 * -(-len(runs) // legend_cols) + 0.15
+    fig, axes = plt.subplots(1, len(CURVE_KEYS), figsize=(5 * len(CURVE_KEYS), 3.8 + legend_in))
     styles = ["-", "--", ":", "-."]
     seen: dict[str, int] = {}
     for run in runs:
@@ -166,8 +169,9 @@ def plot_compare(runs: Sequence[RunCurves], path: str | os.PathLike) -> Path:
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     axes[0].set_ylim(-0.03, 1.03)  # success rate is a fraction
-    axes[0].legend(fontsize=8)
-    fig.tight_layout()
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=legend_cols, fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, legend_in / fig.get_figheight(), 1, 1))
     return _save(fig, plt, path)
 
 

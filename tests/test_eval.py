@@ -259,6 +259,10 @@ def test_cli_compare(trained, tmp_path):
     table = (tmp_path / "cmp.md").read_text()  # the sample-efficiency table beside the figure
     assert table.startswith("env steps to the first") and table.count(f"| {run_dir.name} |") == 2
     assert eval_cli.main(["--compare", str(tmp_path)]) == 2
+    # The table goes to the figure's path with .md, so a .md figure would be overwritten by it.
+    md_out = tmp_path / "table.md"
+    assert eval_cli.main(["--compare", str(run_dir), "--out", str(md_out)]) == 2
+    assert not md_out.exists()
 
 
 def test_cli_ann_run_sets_baseline(trained, tmp_path, capsys):
