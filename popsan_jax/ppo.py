@@ -119,6 +119,17 @@ def build_trainer(config: RunConfig, environment: Any = None) -> Trainer:
     return Trainer(config, env, wrapped, networks, optimizer, iteration, episode_length, devices)
 
 
+def _stagger(t: Trainer, make_policy: Callable[..., Any]) -> Callable[..., Any]:
+    """pmapped ``(state [D], env_state [D], keys [D]) -> env_state``: ppo_update.stagger_episodes
+    with the run's stochastic policy."""
+
+    def stagger(state: ppo_update.TrainingState, env_state: Any, key: jax.Array) -> Any:
+        policy = make_policy((state.normalizer_params, state.params.policy))
+        return ppo_update.stagger_episodes(t.wrapped, env_state, policy, key, t.episode_length)
+
+    return jax.pmap(stagger)
+
+
 def _unreplicate(tree: Any) -> Any:
     return jax.tree.map(lambda x: x[0], tree)
 
@@ -207,6 +218,12 @@ def train(
             last_eval = logger.log("eval", 0, evaluate(state, key_eval))
         state_r = jax.device_put_replicated(state, devices)
         del state
+        if start_steps:
+            logger.message("resuming: spreading the envs over episode phases (not counted)")
+            key, key_stagger = jax.random.split(key)
+            env_state = _stagger(t, make_policy)(
+                state_r, env_state, jax.random.split(key_stagger, len(devices))
+            )
         for it in range(start_iteration, config.num_iterations):
             key, key_it = jax.random.split(key)
             t0 = time.monotonic()

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from _toy_env import PointPick, tiny_config
+from brax.envs.wrappers import training as brax_training
 from tensorboardX import SummaryWriter
 from tensorboardX.proto import event_pb2
 
@@ -137,6 +138,30 @@ def test_resume_restores_state_and_continues_step_count(two_iteration_run, tmp_p
     # the optimiser state continued: 4 iterations' worth of Adam steps, not 2
     assert _adam_counts(out.state.opt_state) == [32]
     assert checkpoint.read_index(resumed_dir)["last"] == 4 * STEPS
+
+
+def test_stagger_spreads_episode_phases():
+    """Env e of a fresh batch takes n_e steps of the policy, n_e spread over [0, L): checked on
+    the episode counter Brax's wrapper keeps, and on how far each hand can have moved."""
+    length, n = 12, 64
+    wrapped = brax_training.wrap(PointPick(episode_length=length), episode_length=length)
+    start = wrapped.reset(jax.random.split(jax.random.PRNGKey(0), n))
+
+    def policy(obs, key):
+        return jax.random.uniform(key, (obs.shape[0], 3), minval=-1.0, maxval=1.0), {}
+
+    out = jax.jit(lambda s, k: ppo_update.stagger_episodes(wrapped, s, policy, k, length))(
+        start, jax.random.PRNGKey(1)
+    )
+    steps = np.asarray(out.info["steps"]).astype(int)
+    assert steps.min() >= 0 and steps.max() <= length - 1
+    assert len(set(steps.tolist())) >= length - 2  # 64 draws over 12 phases, not all at 0
+    assert not np.any(out.done) and not np.any(out.info["truncation"])
+    moved = np.linalg.norm(np.asarray(out.obs[:, :3] - start.obs[:, :3]), axis=1)
+    np.testing.assert_array_equal(moved[steps == 0], 0.0)
+    assert np.all(moved[steps > 0] > 0)
+    assert np.all(moved <= 0.1 * np.sqrt(3) * steps + 1e-6)  # |action| <= 1 per axis, 0.1 m/step
+    np.testing.assert_array_equal(out.info["object_pos"], start.info["object_pos"])
 
 
 def _tensorboard_points(tb_dir, tag: str) -> list[tuple[int, float]]:
