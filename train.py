@@ -4,6 +4,7 @@
     python train.py --env franka_reach --preset smoke # a complete tiny run in about a minute
     python train.py --preset paper                    # the headline run (sized for a GPU)
     python train.py --resume runs/franka_pick-popsan-20261123-160000
+    python train.py --preset paper --init-from runs/a --timesteps 3 --sop-cost 1 --sop-budget 3e4
 
 Flags override the preset, which overrides the backend defaults (popsan_jax/config.py).
 A run writes runs/<env>-<actor>-<timestamp or --name>/ (config.json, metrics.jsonl, tb/,
@@ -55,6 +56,10 @@ CONFIG_FLAGS: dict[str, tuple[type, str]] = {
     "obs_clip": (float, "clip of the normalised observations"),
     "init_log_std": (float, "initial exploration log-std"),
     "critic_hidden_sizes": (_sizes, "critic hidden sizes, e.g. 256,256,256"),
+    "sop_cost": (float, "PopSAN loss penalty per 1000 synaptic ops per inference over budget"),
+    "sop_budget": (float, "synaptic ops per inference the penalty allows for free"),
+    "init_from": (str, "start from this run's networks and normaliser (fresh optimiser)"),
+    "init_checkpoint": (str, "which checkpoint of --init-from: best | last | env-step count"),
     "num_evals": (int, "evaluations (and checkpoints) over the run"),
     "num_eval_envs": (int, "episodes per evaluation"),
     "keep_every_n_evals": (int, "keep every N-th checkpoint besides the last and the best"),

@@ -68,6 +68,14 @@ class RunConfig:
     reward_scaling: float = 1.0
     normalize_advantage: bool = True
     vf_coefficient: float = 0.5
+    # Synaptic-operation penalty (PopSAN only, popsan_jax/spike_cost.py): the loss gains
+    # sop_cost per 1000 SOPs per inference above sop_budget. 0 = PPO's loss alone.
+    sop_cost: float = 0.0
+    sop_budget: float = 0.0
+    # Warm start: policy, critic and observation normaliser from another run's checkpoint
+    # ("best", "last" or an env-step count); fresh optimiser, steps counted from 0.
+    init_from: str | None = None
+    init_checkpoint: str = "best"
     # Evaluation, checkpoints, logging.
     num_evals: int = 10
     num_eval_envs: int = 64
@@ -124,6 +132,15 @@ class RunConfig:
         for name in ("actor_lr", "critic_lr", "obs_clip"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.sop_cost < 0 or self.sop_budget < 0:
+            raise ConfigError("sop_cost and sop_budget must be >= 0")
+        if self.sop_cost and self.actor != "popsan":
+            raise ConfigError(f"sop_cost charges spikes; the {self.actor!r} actor has none")
+        if not (self.init_checkpoint in ("best", "last") or self.init_checkpoint.isdigit()):
+            raise ConfigError(
+                f"init_checkpoint must be 'best', 'last' or an env-step count, "
+                f"got {self.init_checkpoint!r}"
+            )
         if not 0 < self.discounting <= 1 or not 0 <= self.gae_lambda <= 1:
             raise ConfigError("discounting must be in (0, 1] and gae_lambda in [0, 1]")
         if self.sequences_per_iteration % self.num_envs:

@@ -154,6 +154,24 @@ def spike_totals(spikes: Sequence[jax.Array], weight: jax.Array | None = None) -
     return jnp.stack(totals)
 
 
+def sops_per_inference(spikes: Sequence[jax.Array]) -> jax.Array:
+    """Mean synaptic operations per inference of one batch, differentiable through the spikes.
+
+    The same count as :func:`snn_ops_from_totals`' ``sops`` (every layer but the output
+    populations drives the next layer, one AC per spike and target), with each layer's fan-out
+    read from the next layer's width.
+
+    Args:
+      spikes: one ``[T, B, N_l]`` array per spiking layer (encoder, hidden..., output).
+
+    Returns:
+      scalar float32: ``sum_l sum_{t, n} spikes_l / B * N_{l+1}``.
+    """
+    totals = spike_totals(spikes)[:-1]
+    fan_out = jnp.asarray([float(s.shape[-1]) for s in spikes[1:]], jnp.float32)
+    return jnp.sum(totals * fan_out) / spikes[0].shape[1]
+
+
 def snn_ops_from_totals(
     totals: Sequence[float],
     num_observations: float,

@@ -25,11 +25,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from brax.envs.wrappers import training as brax_training
-from brax.training.acme import running_statistics
 from brax.training.agents.ppo import networks as ppo_networks
 
-from popsan_jax import checkpoint, ppo_update
+from popsan_jax import checkpoint, ppo_update, spike_cost
 from popsan_jax.config import RunConfig
+from popsan_jax.energy import sops_per_inference
 from popsan_jax.errors import ConfigError, NonFiniteError
 from popsan_jax.rollout import make_episode_runner
 from popsan_jax.run_logging import RunLogger, wandb_available
@@ -55,26 +55,21 @@ class TrainResult:
 def make_diagnostics_fn(
     config: RunConfig, networks: ppo_networks.PPONetworks, action_size: int
 ) -> Callable[[ppo_update.TrainingState, jax.Array], dict[str, jax.Array]]:
-    """``fn(state, obs [B, O]) -> {entropy, firing_rate/<layer>}`` on a sample of the batch."""
-    from popsan_jax.networks import actor_variables, make_actor
-
-    actor = make_actor(config.actor, dict(config.actor_kwargs), action_size)
+    """``fn(state, obs [B, O]) -> {entropy, firing_rate/<layer>, sops}`` on a sample of the
+    batch (``sops``: synaptic operations per inference, the energy convention's count)."""
+    spikes_fn = spike_cost.make_spikes_fn(config, action_size) if config.actor == "popsan" else None
 
     def diagnostics(state: ppo_update.TrainingState, obs: jax.Array) -> dict[str, jax.Array]:
         logits = networks.policy_network.apply(state.normalizer_params, state.params.policy, obs)
         entropy = networks.parametric_action_distribution.entropy(logits, jax.random.PRNGKey(0))
         out = {"entropy": jnp.mean(entropy)}
-        if config.actor == "popsan":
-            normed = running_statistics.normalize(
-                obs, state.normalizer_params, max_abs_value=config.obs_clip
-            )
-            _, spikes = actor.apply(
-                actor_variables(state.params.policy), normed, return_spikes=True
-            )
+        if spikes_fn is not None:
+            spikes = spikes_fn(state.params.policy, state.normalizer_params, obs)
             names = ["encoder"] + [f"hidden_{k}" for k in range(len(spikes) - 2)] + ["output"]
             out.update(
                 {f"firing_rate/{n}": jnp.mean(s) for n, s in zip(names, spikes, strict=True)}
             )
+            out["sops"] = sops_per_inference(spikes)
         return out
 
     return diagnostics
@@ -167,6 +162,8 @@ def train(
         state, key, entry = checkpoint.restore_checkpoint(run_dir, state, "last")
         eval_index = entry["eval_index"]
     else:
+        if config.init_from:
+            state = checkpoint.warm_start(state, config, t.optimizer, environment)
         run_dir.mkdir(parents=True, exist_ok=True)
         config.to_json(run_dir / checkpoint.CONFIG)
     start_steps = int(state.env_steps)
@@ -209,6 +206,10 @@ def train(
             f"{config.env_steps_per_iteration} env steps/iteration, "
             f"{config.num_iterations} iterations (starting at {start_iteration}) -> {run_dir}"
         )
+        if config.init_from and not resume:
+            logger.message(
+                f"initialised from {config.init_from} ({config.init_checkpoint} checkpoint)"
+            )
         key, key_env = jax.random.split(key)
         env_keys = jax.random.split(key_env, config.num_envs).reshape(len(devices), -1, 2)
         env_state = jax.pmap(t.wrapped.reset)(env_keys)
@@ -218,8 +219,8 @@ def train(
             last_eval = logger.log("eval", 0, evaluate(state, key_eval))
         state_r = jax.device_put_replicated(state, devices)
         del state
-        if start_steps:
-            logger.message("resuming: spreading the envs over episode phases (not counted)")
+        if start_steps or config.init_from:  # a trained policy: see stagger_episodes
+            logger.message("trained policy: spreading the envs over episode phases (not counted)")
             key, key_stagger = jax.random.split(key)
             env_state = _stagger(t, make_policy)(
                 state_r, env_state, jax.random.split(key_stagger, len(devices))

@@ -20,6 +20,7 @@ from brax.training.acme import running_statistics
 from brax.training.agents.ppo import losses as ppo_losses
 from brax.training.agents.ppo import networks as ppo_networks
 
+from popsan_jax import spike_cost
 from popsan_jax.config import RunConfig
 
 AXIS = "devices"
@@ -183,23 +184,16 @@ def make_iteration_fn(
 ) -> Callable[[TrainingState, Any, jax.Array], tuple[TrainingState, Any, dict[str, jax.Array]]]:
     """One full iteration (unroll, normaliser update, epochs of minibatch SGD) for one device.
 
+    The loss is :func:`popsan_jax.spike_cost.make_loss_fn`'s: Brax's PPO loss, plus the SOP
+    penalty when ``config.sop_cost > 0``.
+
     ``env`` is the training-wrapped (vmapped, auto-reset) env; ``diagnostics_fn(state, obs [B,
     O]) -> metrics`` adds entropy / firing rates. Under pmap, gradients and normaliser statistics
     are averaged over ``axis_name``. Returns per-iteration mean metrics plus ``finite`` (1.0 when
     loss and parameters are all finite).
     """
     make_policy = ppo_networks.make_inference_fn(networks)
-    loss_fn = functools.partial(
-        ppo_losses.compute_ppo_loss,
-        ppo_network=networks,
-        entropy_cost=config.entropy_cost,
-        discounting=config.discounting,
-        reward_scaling=config.reward_scaling,
-        gae_lambda=config.gae_lambda,
-        clipping_epsilon=config.clipping_epsilon,
-        normalize_advantage=config.normalize_advantage,
-        vf_coefficient=config.vf_coefficient,
-    )
+    loss_fn = spike_cost.make_loss_fn(config, networks, env.action_size)
     update = gradients.gradient_update_fn(loss_fn, optimizer, axis_name, has_aux=True)
     minibatches = config.num_minibatches
 
@@ -268,6 +262,8 @@ def make_iteration_fn(
             "loss/entropy": metrics["entropy_loss"],
             "kl": metrics["kl_mean"],
         }
+        if config.sop_cost:  # the penalised SOPs of the minibatches, before each update
+            out["loss/sop_penalty"] = metrics["sop_penalty"]
         out = {k: jnp.mean(v) for k, v in out.items()}
         out["train/reward_per_step"] = jnp.mean(data.reward)
         obs_sample = data.observation[: min(256, data.observation.shape[0]), 0]

@@ -206,6 +206,10 @@ def test_missing_and_corrupt_checkpoints_raise_checkpoint_error(tmp_path):
         (["--resume", "{tmp}/missing"], "error: run directory .*missing does not exist"),
         (["--resume", "{tmp}", "--num-envs", "8"], "cannot change num_envs when resuming"),
         (["--preset", "tiny"], "error: unknown preset 'tiny'"),
+        (["--init-from", "{tmp}/missing"], "error: run directory .*missing does not exist"),
+        (["--init-checkpoint", "newest"], "init_checkpoint must be 'best', 'last' or an env-step"),
+        (["--sop-cost", "-1"], "sop_cost and sop_budget must be >= 0"),
+        (["--actor", "mlp", "--sop-cost", "1"], "the 'mlp' actor has none"),
         (["--wandb"], "error: --wandb needs the wandb package"),
     ],
 )

@@ -1,5 +1,6 @@
 """Operation counting and energy arithmetic against hand-worked values."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -58,6 +59,15 @@ def test_tiny_network_ops_hand_worked():
     assert ops.energy_pj == pytest.approx(46.05)
     # Dense first layer: (6 + 24) * 4.6 + (20.5 - 10.5) * 0.9 = 138 + 9 = 147 pJ.
     assert ops.dense_first_energy_pj == pytest.approx(147.0)
+
+
+def test_sops_per_inference_is_the_hand_count_and_differentiable():
+    # Fan-outs read from the next layers' widths (3, 2, 2): the same 20.5 as above.
+    assert float(energy.sops_per_inference(_tiny_spikes())) == pytest.approx(20.5)
+    # d SOPs / d spike = fan-out / B: encoder 3 / 2, hidden1 2 / 2, hidden2 2 / 2, output 0.
+    grads = jax.grad(energy.sops_per_inference)(_tiny_spikes())
+    for g, expected in zip(grads, (1.5, 1.0, 1.0, 0.0), strict=True):
+        np.testing.assert_allclose(g, np.full(g.shape, expected))
 
 
 def test_masked_observation_is_not_counted():
