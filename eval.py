@@ -8,9 +8,10 @@
 Outputs go into the run directory: ``eval_<which>.json`` (report, energy rows, latency),
 ``tracking_<which>.png``, ``energy_<which>.md`` and ``.csv``. ``--env-override`` evaluates under
 changed env settings (merged over the run's own) and appends them to ``<which>``, e.g.
-``eval_last+grasp_radius=0.0.json``, as ``--stochastic`` appends ``+stochastic``, so the plain
-(deterministic) evaluation is never overwritten. ``--compare`` writes the curves figure and, beside
-it (``compare.md``), the table of env steps to the first 50/80/90 % success per run and per actor.
+``eval_last+grasp_radius=0.0.json``, as ``--stochastic`` appends ``+stochastic`` and ``--seed N``
+(N > 0) ``+seedN``, so the plain (deterministic, seed 0) evaluation is never overwritten.
+``--compare`` writes the curves figure and, beside it (``compare.md``), the table of env steps
+to the first 50/80/90 % success per run and per actor.
 Video rendering needs EGL or OSMesa (CPU machines: ``apt-get install -y libosmesa6``); see
 popsan_jax/video.py.
 A UserError (missing/corrupt/incompatible checkpoint, bad flag value) prints ``error: <msg>``
@@ -39,7 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
     which.add_argument("--step", type=int, help="checkpoint at this env step (default: last)")
     p.add_argument("--episodes", type=int, default=1000, help="evaluation episodes (default 1000)")
     p.add_argument("--stochastic", action="store_true", help="sample actions (default: mean)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="episode seed (not 0: appends +seedN)")
     p.add_argument("--timesteps", default="1,2,3,4,5", help="T values of the energy table")
     p.add_argument("--ann-run", help="MLP run whose hidden sizes define the ANN baseline")
     p.add_argument("--video", metavar="OUT", help="render one episode to this .mp4/.gif")
@@ -113,7 +114,8 @@ def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any
     which = "best" if args.best else (args.step if args.step is not None else "last")
     overrides = dict(args.env_override)
     policy = "+stochastic" if args.stochastic else ""
-    tag = evaluation.checkpoint_label(which) + policy + overrides_tag(overrides)
+    seed = f"+seed{args.seed}" if args.seed else ""  # a re-check on other episodes sits beside
+    tag = evaluation.checkpoint_label(which) + policy + seed + overrides_tag(overrides)
     run_dir = Path(args.run_dir)
     t0 = time.monotonic()
     loaded = load_run(run_dir, which, environment=environment, env_overrides=overrides)
@@ -132,6 +134,7 @@ def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any
         which=tag,
         env_steps=loaded.step,
         policy="stochastic" if args.stochastic else "deterministic",
+        seed=args.seed,
         actor=loaded.config.actor,
         timesteps=evaluation.trained_timesteps(loaded.config),
         env_overrides=overrides,

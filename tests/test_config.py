@@ -92,6 +92,23 @@ def test_paper_preset_is_the_committed_pick_run_that_learned():
         assert paper == committed.replace(env_overrides={}), backend
 
 
+def test_documented_t2_fine_tune_is_the_committed_run():
+    # docs/results.md's fine-tune command (T = 2 under a spike budget, the energy result) must
+    # resolve to the committed t2-s0 config, whose checkpoint is committed beside it.
+    committed = RunConfig.from_json(ROOT / "docs/results/pick_sop/t2-s0/config.json")
+    flags = dict(
+        init_from="runs/pick_scale/popsan-s0",
+        sop_cost=0.01,
+        sop_budget=30000.0,
+        actor_lr=1e-4,
+        seed=0,
+        total_env_steps=4_000_000,
+        num_evals=16,
+    )
+    for backend in ("cpu", "gpu"):
+        assert resolve_config("paper", backend, flags, {"timesteps": 2}) == committed, backend
+
+
 @pytest.mark.parametrize(
     "kwargs, actor_kwargs, match",
     [

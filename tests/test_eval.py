@@ -209,6 +209,12 @@ def test_cli_best_and_step(trained):
     sampled = json.loads((run_dir / "eval_best+stochastic.json").read_text())
     assert sampled["policy"] == "stochastic" and sampled["which"] == "best+stochastic"
     assert json.loads((run_dir / "eval_best.json").read_text())["policy"] == "deterministic"
+    # So does a re-check on other episodes (another --seed); it draws other initial states.
+    assert eval_cli.main([str(run_dir), "--best", "--seed", "3", *fast], environment=env) == 0
+    other = json.loads((run_dir / "eval_best+seed3.json").read_text())
+    plain = json.loads((run_dir / "eval_best.json").read_text())
+    assert other["seed"] == 3 and plain["seed"] == 0
+    assert other["episode_return"] != plain["episode_return"]
 
 
 def test_cli_errors(trained, tmp_path, capsys):
