@@ -2,6 +2,7 @@
 
     python benchmarks/train_throughput.py                     # franka_pick, 512 envs
     python benchmarks/train_throughput.py --num-envs 256 --iterations 3
+    python benchmarks/train_throughput.py --actors popsan,popsan+sop --timesteps 2
 
 Times whole jitted PPO iterations (unroll + normaliser update + minibatch epochs), after
 ``--warmup`` iterations that absorb compilation (and the weak-type recompile of a fresh state).
@@ -12,6 +13,9 @@ actors' dense FLOPs ran at the fp32 matmul rate measured in this process and eve
 (env, critic, PPO bookkeeping) cost what the MLP run shows. FLOPs per env step = one rollout
 forward + ``epochs`` x (forward + backward) as executed: PopSAN's first-layer input gradient is one
 matmul on the T-summed cotangent (see popsan_jax/encoder.py); the MLP needs no input gradient.
+
+``popsan+sop`` is PopSAN with the synaptic-operation penalty in the loss (``--sop-cost``, budget
+0 so it is active on every minibatch); its line gives its cost relative to plain PopSAN.
 """
 
 from __future__ import annotations
@@ -63,11 +67,16 @@ def matmul_gflops(n: int = 2048, repeats: int = 10) -> float:
     return 2.0 * n**3 / best / 1e9
 
 
-def measure(actor: str, args: argparse.Namespace) -> tuple[float, float]:
-    """(env steps/s, actor dense FLOPs per env step) for one actor."""
+def measure(spec: str, args: argparse.Namespace) -> tuple[float, float]:
+    """(env steps/s, actor dense FLOPs per env step) for one actor spec (``mlp``, ``popsan``,
+    ``popsan+sop``)."""
     from popsan_jax import ppo, ppo_update
     from popsan_jax.config import resolve_config
 
+    actor, _, variant = spec.partition("+")
+    if variant not in ("", "sop") or (variant and actor != "popsan"):
+        raise SystemExit(f"error: unknown actor spec {spec!r} (mlp, popsan, popsan+sop)")
+    penalty = dict(sop_cost=args.sop_cost, sop_budget=0.0) if variant else {}
     config = resolve_config(
         None,
         jax.default_backend(),
@@ -79,7 +88,9 @@ def measure(actor: str, args: argparse.Namespace) -> tuple[float, float]:
             num_minibatches=args.num_minibatches,
             unroll_length=args.unroll_length,
             num_updates_per_batch=args.epochs,
+            **penalty,
         ),
+        {"timesteps": args.timesteps} if actor == "popsan" else {},
     )
     t = ppo.build_trainer(config)
     key = jax.random.PRNGKey(0)
@@ -93,7 +104,7 @@ def measure(actor: str, args: argparse.Namespace) -> tuple[float, float]:
     for i in range(args.warmup + args.iterations):
         if i == args.warmup:
             jax.block_until_ready(state)
-            print(f"  {actor}: compiled + warm-up {time.monotonic() - t0:.1f} s", flush=True)
+            print(f"  {spec}: compiled + warm-up {time.monotonic() - t0:.1f} s", flush=True)
             t0 = time.monotonic()
         state, env_state, metrics = t.iteration(
             state, env_state, jax.random.split(jax.random.PRNGKey(i), len(t.devices))
@@ -113,7 +124,9 @@ def main() -> None:
     p.add_argument("--epochs", type=int, default=4)
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--iterations", type=int, default=3)
-    p.add_argument("--actors", default="popsan,mlp")
+    p.add_argument("--actors", default="popsan,mlp", help="comma list of mlp, popsan, popsan+sop")
+    p.add_argument("--timesteps", type=int, default=5, help="PopSAN's T")
+    p.add_argument("--sop-cost", type=float, default=0.01, help="penalty weight of popsan+sop")
     args = p.parse_args()
 
     from popsan_jax.jax_setup import enable_compilation_cache
@@ -121,7 +134,7 @@ def main() -> None:
     enable_compilation_cache()
     print(
         f"train throughput on {args.env}: {args.num_envs} envs, unroll {args.unroll_length}, "
-        f"{args.num_minibatches} minibatches x {args.epochs} epochs; "
+        f"{args.num_minibatches} minibatches x {args.epochs} epochs; PopSAN T = {args.timesteps}; "
         f"{jax.device_count()} {jax.default_backend()} device(s); "
         f"{cpu_name()}, {os.cpu_count()} cores",
         flush=True,
@@ -134,6 +147,8 @@ def main() -> None:
             "MFLOP per env step",
             flush=True,
         )
+    if {"popsan", "popsan+sop"} <= set(rates):
+        print(f"popsan+sop / popsan = {rates['popsan+sop'] / rates['popsan']:.2f}")
     if {"popsan", "mlp"} <= set(rates):
         ratio = rates["popsan"] / rates["mlp"]
         verdict = "meets" if ratio >= 0.6 else "misses"
