@@ -1,6 +1,7 @@
 """Evaluate a saved run: report, tracking figure, energy table, latency, video; or compare runs.
 
-    python eval.py runs/<dir> [--best | --step N] [--episodes 1000] [--stochastic]
+    python eval.py runs/<dir> [--best | --step N | --all-checkpoints] [--episodes 1000]
+                   [--stochastic] [--seed N]
                    [--timesteps 1,2,3,4,5] [--ann-run runs/<mlp dir>] [--video out.mp4]
                    [--no-energy] [--no-latency] [--no-tracking] [--env-override KEY=VALUE]
     python eval.py --compare runs/a runs/b ... [--out compare.png]
@@ -10,6 +11,10 @@ Outputs go into the run directory: ``eval_<which>.json`` (report, energy rows, l
 changed env settings (merged over the run's own) and appends them to ``<which>``, e.g.
 ``eval_last+grasp_radius=0.0.json``, as ``--stochastic`` appends ``+stochastic`` and ``--seed N``
 (N > 0) ``+seedN``, so the plain (deterministic, seed 0) evaluation is never overwritten.
+``--all-checkpoints`` evaluates every kept checkpoint on the same episodes (success, length,
+return; no energy, latency or figures) and writes ``eval_checkpoints.json`` and ``.md`` with the
+checkpoint of highest success; its full evaluation is then ``--step N``, and a re-check on other
+episodes ``--step N --seed 1`` (it was selected on these).
 ``--compare`` writes the curves figure and, beside it (``compare.md``), the table of env steps
 to the first 50/80/90 % success per run and per actor.
 Video rendering needs EGL or OSMesa (CPU machines: ``apt-get install -y libosmesa6``); see
@@ -38,6 +43,11 @@ def build_parser() -> argparse.ArgumentParser:
     which = p.add_mutually_exclusive_group()
     which.add_argument("--best", action="store_true", help="best checkpoint by success rate")
     which.add_argument("--step", type=int, help="checkpoint at this env step (default: last)")
+    which.add_argument(
+        "--all-checkpoints",
+        action="store_true",
+        help="rank every kept checkpoint by success on the same episodes",
+    )
     p.add_argument("--episodes", type=int, default=1000, help="evaluation episodes (default 1000)")
     p.add_argument("--stochastic", action="store_true", help="sample actions (default: mean)")
     p.add_argument("--seed", type=int, default=0, help="episode seed (not 0: appends +seedN)")
@@ -115,9 +125,12 @@ def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any
     overrides = dict(args.env_override)
     policy = "+stochastic" if args.stochastic else ""
     seed = f"+seed{args.seed}" if args.seed else ""  # a re-check on other episodes sits beside
-    tag = evaluation.checkpoint_label(which) + policy + seed + overrides_tag(overrides)
+    suffix = policy + seed + overrides_tag(overrides)
+    tag = evaluation.checkpoint_label(which) + suffix
     run_dir = Path(args.run_dir)
     t0 = time.monotonic()
+    if args.all_checkpoints:
+        return rank_checkpoints(args, run_dir, "checkpoints" + suffix, environment)
     loaded = load_run(run_dir, which, environment=environment, env_overrides=overrides)
     print(
         f"loaded {run_dir} ({tag}, env step {loaded.step}); compiling and running "
@@ -196,6 +209,47 @@ def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any
     report["wall_s"] = time.monotonic() - t0
     path = evaluation.write_json(run_dir / f"eval_{tag}.json", report)
     print(f"wrote {path}")
+    return report
+
+
+def rank_checkpoints(
+    args: argparse.Namespace, run_dir: Path, tag: str, environment: Any
+) -> dict[str, Any]:
+    """``--all-checkpoints``: every kept checkpoint over the same episodes; JSON + markdown."""
+    import jax
+
+    from popsan_jax import checkpoint_sweep, evaluation
+
+    if args.video:
+        raise UserError("--video needs one checkpoint: use --step N, not --all-checkpoints")
+    t0 = time.monotonic()
+    print(f"evaluating every kept checkpoint of {run_dir} on {args.episodes} episodes", flush=True)
+    _, k_eval = jax.random.split(jax.random.PRNGKey(args.seed))  # the episodes of --step N
+    result = checkpoint_sweep.evaluate_checkpoints(
+        run_dir,
+        args.episodes,
+        k_eval,
+        deterministic=not args.stochastic,
+        environment=environment,
+        env_overrides=dict(args.env_override),
+        progress=lambda msg: print(f"  {msg}", flush=True),
+    )
+    md = checkpoint_sweep.checkpoints_markdown(
+        result, f"Kept checkpoints of {run_dir.name} ({tag})"
+    )
+    (run_dir / f"eval_{tag}.md").write_text(md)
+    report = dict(
+        run_dir=str(run_dir),
+        which=tag,
+        policy="stochastic" if args.stochastic else "deterministic",
+        seed=args.seed,
+        env_overrides=dict(args.env_override),
+        **result,
+        wall_s=time.monotonic() - t0,
+    )
+    path = evaluation.write_json(run_dir / f"eval_{tag}.json", report)
+    print(md)
+    print(f"wrote {path} and {path.with_suffix('.md')}; chosen: --step {result['chosen_step']}")
     return report
 
 

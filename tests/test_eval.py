@@ -217,6 +217,41 @@ def test_cli_best_and_step(trained):
     assert other["episode_return"] != plain["episode_return"]
 
 
+def test_cli_all_checkpoints_match_single_evaluations(trained, capsys):
+    """The ranking's rows are exactly the ``--step N`` evaluations of each checkpoint: the same
+    episodes (the key of ``--step N``), each checkpoint loaded, its training figure carried."""
+    run_dir, env, _ = trained
+    index = json.loads((run_dir / "checkpoints" / "index.json").read_text())
+    fast = ["--episodes", "8", "--no-energy", "--no-latency", "--no-tracking"]
+    assert eval_cli.main([str(run_dir), "--all-checkpoints", "--episodes", "8"], env) == 0
+    ranked = json.loads((run_dir / "eval_checkpoints.json").read_text())
+    assert [r["step"] for r in ranked["rows"]] == sorted(e["step"] for e in index["checkpoints"])
+    assert len(ranked["rows"]) >= 2
+    for row in ranked["rows"]:
+        entry = next(e for e in index["checkpoints"] if e["step"] == row["step"])
+        assert row["training_success"] == entry["success_rate"]
+        assert eval_cli.main([str(run_dir), "--step", str(row["step"]), *fast], env) == 0
+        single = json.loads((run_dir / f"eval_step_{row['step']}.json").read_text())
+        assert row["episodes"] == single["episodes"] == 8
+        assert row["success_rate"] == single["success_rate"]
+        assert row["episode_length"] == single["episode_length"]
+        assert row["episode_return"] == single["episode_return"]
+    # Checkpoints differ, so the rows must too (else all rows came from one checkpoint).
+    assert len({r["episode_return"] for r in ranked["rows"]}) == len(ranked["rows"])
+    top = max(r["success_rate"] for r in ranked["rows"])
+    assert ranked["chosen_step"] == max(
+        r["step"] for r in ranked["rows"] if r["success_rate"] == top
+    )
+    md = (run_dir / "eval_checkpoints.md").read_text()
+    assert md.count("**") == 2 and f"| {ranked['chosen_step']:,} |" in md
+    assert "chosen: --step" in capsys.readouterr().out
+    argv = [str(run_dir), "--all-checkpoints", "--video", "x.mp4"]
+    assert eval_cli.main(argv, env) == 2
+    assert "--video needs one checkpoint" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # one of --best / --step / --all-checkpoints
+        eval_cli.main([str(run_dir), "--all-checkpoints", "--best"])
+
+
 def test_cli_errors(trained, tmp_path, capsys):
     run_dir, env, _ = trained
     fast = ["--episodes", "4", "--no-energy", "--no-latency", "--no-tracking"]

@@ -2,7 +2,9 @@
 # The energy step of the pick study (docs/results.md, "Fine-tuning at T = 2 under a spike
 # budget"): each seed's T = 5 PopSAN (best checkpoint) trained on at T = 2 for 4 M env steps with
 # a synaptic-operation penalty above 30 k SOPs per inference and actor lr 1e-4; then every kept
-# checkpoint is evaluated over 1000 episodes at T = 2, the best of those gets the energy table
+# checkpoint is evaluated over the same 1000 episodes at T = 2 (eval.py --all-checkpoints; the
+# runs of 30 November did this with one eval.py --step N per checkpoint, which gives the same
+# figures), the best of those gets the energy table
 # (T = 1, 2, 3, against its seed's ANN) and a re-check on 1000 other episodes (--seed 1).
 #
 # Usage: bash docs/results/pick_energy.sh [STUDY_RUNS] [OUT_RUNS]
@@ -23,13 +25,9 @@ for seed in 0 1 2; do
       --sop-cost 0.01 --sop-budget 30000 --actor-lr 1e-4 --seed "$seed" \
       --total-env-steps 4000000 --num-evals 16 --name "t2-s$seed" --runs-dir "$RUNS" --no-progress
   fi
-  steps=$($PY -c "import json,sys; i=json.load(open(sys.argv[1])); \
-print(' '.join(str(c['step']) for c in i['checkpoints']))" "$dir/checkpoints/index.json")
-  for step in $steps; do
-    $PY eval.py "$dir" --step "$step" --episodes 1000 --no-energy --no-latency --no-tracking
-  done
-  chosen=$($PY -c "import json,sys; best=max(sys.argv[2:], key=lambda s: json.load(open( \
-f'{sys.argv[1]}/eval_step_{s}.json'))['success_rate']); print(best)" "$dir" $steps)
+  $PY eval.py "$dir" --all-checkpoints --episodes 1000  # writes eval_checkpoints.json/.md
+  chosen=$($PY -c "import json,sys; print(json.load(open(sys.argv[1]))['chosen_step'])" \
+    "$dir/eval_checkpoints.json")
   $PY eval.py "$dir" --step "$chosen" --episodes 1000 --timesteps 1,2,3 \
     --ann-run "$STUDY/mlp-s$seed" --no-tracking
   $PY eval.py "$dir" --step "$chosen" --episodes 1000 --seed 1 --no-energy --no-latency \
