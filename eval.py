@@ -126,19 +126,18 @@ def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any
     policy = "+stochastic" if args.stochastic else ""
     seed = f"+seed{args.seed}" if args.seed else ""  # a re-check on other episodes sits beside
     suffix = policy + seed + overrides_tag(overrides)
-    tag = evaluation.checkpoint_label(which) + suffix
     run_dir = Path(args.run_dir)
-    t0 = time.monotonic()
     if args.all_checkpoints:
-        return rank_checkpoints(args, run_dir, "checkpoints" + suffix, environment)
+        return rank_checkpoints(args, run_dir, "checkpoints" + suffix, overrides, environment)
+    tag = evaluation.checkpoint_label(which) + suffix
+    t0 = time.monotonic()
     loaded = load_run(run_dir, which, environment=environment, env_overrides=overrides)
     print(
         f"loaded {run_dir} ({tag}, env step {loaded.step}); compiling and running "
         f"{args.episodes} episodes",
         flush=True,
     )
-    key = jax.random.PRNGKey(args.seed)
-    key, k_eval = jax.random.split(key)
+    key, k_eval = evaluation.episode_keys(args.seed)
     batch = jax.device_get(
         evaluation.rollouts(loaded, args.episodes, k_eval, not args.stochastic, record=True)
     )
@@ -213,25 +212,27 @@ def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any
 
 
 def rank_checkpoints(
-    args: argparse.Namespace, run_dir: Path, tag: str, environment: Any
+    args: argparse.Namespace,
+    run_dir: Path,
+    tag: str,
+    overrides: dict[str, Any],
+    environment: Any,
 ) -> dict[str, Any]:
     """``--all-checkpoints``: every kept checkpoint over the same episodes; JSON + markdown."""
-    import jax
-
     from popsan_jax import checkpoint_sweep, evaluation
 
     if args.video:
         raise UserError("--video needs one checkpoint: use --step N, not --all-checkpoints")
     t0 = time.monotonic()
     print(f"evaluating every kept checkpoint of {run_dir} on {args.episodes} episodes", flush=True)
-    _, k_eval = jax.random.split(jax.random.PRNGKey(args.seed))  # the episodes of --step N
+    _, k_eval = evaluation.episode_keys(args.seed)  # the episodes of --step N
     result = checkpoint_sweep.evaluate_checkpoints(
         run_dir,
         args.episodes,
         k_eval,
         deterministic=not args.stochastic,
         environment=environment,
-        env_overrides=dict(args.env_override),
+        env_overrides=overrides,
         progress=lambda msg: print(f"  {msg}", flush=True),
     )
     md = checkpoint_sweep.checkpoints_markdown(
@@ -243,7 +244,7 @@ def rank_checkpoints(
         which=tag,
         policy="stochastic" if args.stochastic else "deterministic",
         seed=args.seed,
-        env_overrides=dict(args.env_override),
+        env_overrides=overrides,
         **result,
         wall_s=time.monotonic() - t0,
     )

@@ -71,6 +71,13 @@ def trained_timesteps(config: Any) -> int | None:
     return int(config.actor_kwargs["timesteps"]) if config.actor == "popsan" else None
 
 
+def episode_keys(seed: int) -> tuple[jax.Array, jax.Array]:
+    """``(key, episodes_key)`` of an evaluation with ``seed``: the second draws the episodes
+    (initial states, and actions when stochastic), the first is left for the energy sweep.
+    Every evaluation of a seed draws the same episodes, so runs and checkpoints compare."""
+    return tuple(jax.random.split(jax.random.PRNGKey(seed)))
+
+
 def rollouts(
     loaded: Any,
     episodes: int,
