@@ -3,6 +3,10 @@
     .venv/bin/python benchmarks/env_throughput.py                # 512 and 2048 envs
     .venv/bin/python benchmarks/env_throughput.py --envs 64      # small and quick
 
+Each size is measured for the current env and for revision 1 (the settings before the grasp
+fix: one 20 ms substep, MuJoCo's default pad impedance) in the same process, and the ratio is
+printed, so the figure survives the 2-3x speed differences between CPU boxes.
+
 Each figure is measured after two warm-up calls (the second call of a jitted function on a reset
 state can recompile if dtypes are unstable; here it must not) over a jitted ``lax.scan`` of
 ``--steps`` steps, so the host is out of the loop. The compile time is printed without the
@@ -17,6 +21,7 @@ import time
 import jax
 import jax.numpy as jnp
 from mujoco import mjx
+from train_throughput import cpu_name
 
 
 def _timed(fn, *args) -> tuple[float, object]:
@@ -75,6 +80,9 @@ def main() -> None:
     parser.add_argument("--env", default="franka_pick")
     parser.add_argument("--no-raw", action="store_true", help="skip the raw mjx.step figure")
     parser.add_argument("--cache", action="store_true", help="use the persistent compile cache")
+    parser.add_argument(
+        "--no-legacy", action="store_true", help="skip the revision-1 (old settings) figure"
+    )
     args = parser.parse_args()
     if args.cache:
         from popsan_jax.jax_setup import enable_compilation_cache
@@ -83,22 +91,32 @@ def main() -> None:
 
     import envs
 
-    env = envs.get_environment(args.env)
-    print(
-        f"{args.env}: ctrl_dt {env.config.ctrl_dt}, sim_dt {env.config.sim_dt}, "
-        f"devices {jax.devices()}"
-    )
-    for n in args.envs:
-        r = bench_env(env, n, args.steps)
-        print(
-            f"{n:5d} envs: {r['steps_per_s']:9.0f} env steps/s | compile reset "
-            f"{r['compile_reset_s']:.1f} s, step scan {r['compile_step_s']:.1f} s | "
-            f"finite {bool(r['finite'])}",
-            flush=True,
+    variants = {"current": envs.get_environment(args.env)}
+    if not args.no_legacy:
+        variants["revision 1"] = envs.get_environment(
+            args.env, **envs.legacy_overrides(args.env, 1)
         )
-        if not args.no_raw:
-            raw = bench_raw_mjx(env, n, args.steps)
-            print(f"{n:5d} envs: {raw:9.0f} raw mjx.step physics steps/s", flush=True)
+    print(f"CPU: {cpu_name()}; devices {jax.devices()}")
+    for name, env in variants.items():
+        print(f"{args.env} {name}: ctrl_dt {env.config.ctrl_dt}, sim_dt {env.config.sim_dt}")
+    for n in args.envs:
+        rates = {}
+        for name, env in variants.items():
+            r = bench_env(env, n, args.steps)
+            rates[name] = r["steps_per_s"]
+            print(
+                f"{n:5d} envs, {name:10s}: {r['steps_per_s']:9.0f} env steps/s | compile reset "
+                f"{r['compile_reset_s']:.1f} s, step scan {r['compile_step_s']:.1f} s | "
+                f"finite {bool(r['finite'])}",
+                flush=True,
+            )
+            if not args.no_raw:
+                raw = bench_raw_mjx(env, n, args.steps)
+                print(f"{n:5d} envs, {name:10s}: {raw:9.0f} raw mjx.step physics steps/s")
+        if len(rates) == 2:
+            print(
+                f"{n:5d} envs: current / revision 1 = {rates['current'] / rates['revision 1']:.2f}"
+            )
 
 
 if __name__ == "__main__":

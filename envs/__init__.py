@@ -32,6 +32,21 @@ def get_environment(name: str, **config_overrides: Any) -> Env:
     return _ENVS[name](**config_overrides)
 
 
+def legacy_overrides(name: str, revision: int) -> dict[str, Any]:
+    """Config overrides that make env ``name`` behave as its ``revision`` did (a run config saved
+    by an earlier version names the revision it was trained with); ``{}`` for the current one."""
+    if name not in _ENVS:
+        raise ConfigError(f"unknown env {name!r}; available: {', '.join(list_environments())}")
+    env_cls = _ENVS[name]
+    current = getattr(env_cls, "revision", 1)
+    if not 1 <= revision <= current:
+        raise ConfigError(f"env {name!r} has revisions 1..{current}, not {revision}")
+    merged: dict[str, Any] = {}
+    for r in range(current - 1, revision - 1, -1):  # newest first, so older values win
+        merged.update(getattr(env_cls, "legacy_overrides", {}).get(r, {}))
+    return merged
+
+
 def default_config(name: str):
     """The default config (``ml_collections.ConfigDict``) of env ``name``."""
     if name not in _ENVS:
@@ -39,4 +54,11 @@ def default_config(name: str):
     return _ENVS[name].default_config()
 
 
-__all__ = ["FrankaPick", "FrankaReach", "default_config", "get_environment", "list_environments"]
+__all__ = [
+    "FrankaPick",
+    "FrankaReach",
+    "default_config",
+    "get_environment",
+    "legacy_overrides",
+    "list_environments",
+]

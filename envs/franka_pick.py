@@ -1,4 +1,7 @@
-"""franka_pick: grasp a 4 cm cube from the floor and lift it to ``goal_z`` (PixMC FrankaPick).
+"""franka_pick: grasp a 4 cm, 50 g cube from the floor, lift it to ``goal_z`` and hold it there.
+
+PixMC's FrankaPick semantics on the project's Panda model; the reasons for each departure from
+PixMC are in ``docs/design.md`` (action scale, grasp gate, contact settings, episode length).
 
 Observation (34, raw / un-normalised), in this order:
 
@@ -13,18 +16,11 @@ Observation (34, raw / un-normalised), in this order:
 33     goal_z - object_z
 ====== ========================================================================
 
-Action (9): joint-target deltas in [-1, 1] (clipped here), see ``envs/panda.py``, with
-``action_scale`` 2.0 instead of PixMC's 7.5: 0.04 rad per unit action per 50 Hz step
-(Playground's PandaPickCube also moves its targets 0.04 rad per step) instead of 0.15 rad.
-Why: a Gaussian policy explores by adding noise to every action, and at 0.15 rad per step
-N(0, 0.1^2) noise on the scripted grasp's actions already breaks it (success 95 % -> 2 %),
-while at 0.04 rad it still succeeds 87 % of the time (``docs/results/grasp_noise.py``).
-Trained with PixMC's scale, neither actor carried the cube up in 16-22 M steps; with 2.0 both
-held it within 1.2-2.5 M steps and passed 90 % success (seed 0, docs/results.md).
-``action_scale=7.5`` restores PixMC's semantics.
+Action (9): joint-target deltas in [-1, 1] (clipped here), see ``envs/panda.py``; ``action_scale``
+2.0 (0.04 rad per unit action per 50 Hz step; PixMC's 7.5 moves 0.15 rad).
 
-Reward (PixMC's terms; ``state.metrics`` carries each UNSCALED term, ``held`` (0/1, not
-scaled into the reward) and ``success``)::
+Reward (PixMC's terms; ``state.metrics`` carries each UNSCALED term; scales in
+``config.reward_scales``)::
 
     dist_left/right = 1 / (0.04 + max(|obj - tip|, 0.02))        scale 0.08 each
     lift            = 0.5 if obj_z - z_rest > 0.015 and held       scale 4.0
@@ -32,43 +28,39 @@ scaled into the reward) and ``success``)::
     goal_bonus      = 0.5 if |goal_z - obj_z| <= 0.04 and held     scale 4.0
     action          = sum(a^2) of the clipped action               scale -0.01
 
-``held`` means both fingertip pads are within ``grasp_radius`` (0.04 m) of the cube centre; in a
-grasp they sit 0.016-0.022 m from it (scripted grasp, 99th percentile). ``success`` latches
-(stays 1 for the rest of the episode) once ``|goal_z - obj_z| <= 0.25 (goal_z - z_rest)`` and
-``held`` have both been true for 10 consecutive control steps.
+``held`` (0/1, no scale): both fingertip pads within ``grasp_radius`` (0.04 m) of the cube centre.
+The object terms pay only while the cube is held, so no term pays for a thrown or dropped cube.
+``in band``: ``|goal_z - obj_z| <= 0.25 (goal_z - z_rest)`` (PixMC's success tolerance).
 
-Why the grasp gate (PixMC has none): with PixMC's ungated terms, policies trained here learned to
-TOSS the cube through the goal height. At 50 Hz with soft contacts a squeezed cube can be
-launched, the airborne cube earns ``object_goal`` (up to 32 per step near the goal), and a toss
-whose apex is 10 cm above the goal stays within the success band for ~14 steps, so it even
-"succeeds". Measured on the 2-hour seed-0 runs (256 episodes each): 75 % (MLP) and 42 % (PopSAN)
-of episodes ended early with the cube thrown out of the workspace, although 99 % lifted it.
-``grasp_radius=0`` restores PixMC's ungated reward and success.
+Episode metrics (``state.metrics``; their value at an episode's last step is the episode's):
+
+- ``success``: pick-and-hold. 1 at a step when the cube has been held inside the band for the
+  last ``hold_seconds`` (2 s = 100 control steps) and the episode has not terminated; so at the
+  last step of an episode it means "ran to its end with the cube held at the goal for its last
+  2 s". An episode that terminates early is a failure.
+- ``reached``: PixMC's latched success, kept for comparison with the paper: 1 from the step the
+  cube has been held inside the band for ``reach_steps`` (10) consecutive steps.
+- ``hold_time``: seconds so far with the cube held inside the band.
+
 Episodes end (``done``) when the object falls more than 0.04 below its rest height or leaves the
 workspace, or the physics state is NaN/inf; the timeout is Brax's ``EpisodeWrapper``
-(``episode_length``). The arm links do not collide in this model (for speed), so PixMC's
-"arm-link contact" reset does not apply; the hand+pads cannot pass through the floor.
+(``episode_length`` 250 steps = 5 s: the scripted grasp reaches the band after about 2.5 s, and
+the last 2 s must be a hold). The arm links do not collide (for speed), so PixMC's "arm-link
+contact" reset does not apply; the hand and pads cannot pass through the floor.
 
-Scene: the cube rests on a floor-level table (z_rest = 0.02) at x = 0.5 +- 0.1, y = 0 +- 0.2;
-the lift distance of PixMC is kept (goal_z = z_rest + 0.4 = 0.42). Initial arm joints are the
-home pose +- 0.125 rad.
+Scene: the cube rests on a floor-level table (z_rest = 0.02) at x = 0.5 +- 0.1, y = 0 +- 0.2; the
+lift distance of PixMC is kept (goal_z = z_rest + 0.4 = 0.42). Initial arm joints: home +-
+0.125 rad.
 
-Control rate and physics (chosen for MJX speed on CPU, measured in benchmarks/env_throughput.py):
-ctrl_dt = sim_dt = 0.02 s, i.e. 50 Hz control with ONE physics substep per env step (Playground's
-PandaPickCube uses 4 substeps of 5 ms). MJX's cost is per physics step, so one substep is what
-reaches >= 11k env steps/s at 512 envs on 2 CPU cores. It stays stable because the integrator is
-implicitfast (servo and joint damping handled implicitly), every joint has armature 0.1, the
-servos are damped near critically and gravity-compensated (see assets/panda.xml), the contact set
-is 4 explicit pairs, and the solver runs Newton with 4 iterations / 6 line-search iterations.
-MJX's ``max_contact_points`` caps the TOTAL number of contacts (not per pair): 12 leaves room for
-the cube-floor box (4) plus both box pads; with 4 the pads got no contacts at all. The grasp
-holds at 50 Hz with box pads (pair friction 1.5) squeezing a 50 g cube at <= 20 N per finger; the
-scripted grasp (``envs/scripted.py``) checks it: 97 % success on 64 random episodes (at PixMC's
-action scale). The contact stays soft at 50 Hz, so a held cube creeps slowly; ~10-15 % slip
-out 1.5-2 s after reaching the goal (success has latched by then). Elliptic cones (impratio
-10) and a stiffer pad solimp made the grasp fail outright in MJX here.
-episode_length 200 steps = 4 s (PixMC: 500 steps at 60 Hz = 8.3 s); the scripted
-grasp-and-lift reaches success after about 2.5 s, leaving room for a learned policy.
+Physics: 50 Hz control with two 10 ms physics substeps (MJX's cost is per physics step), the
+implicitfast integrator, 4 explicit contact pairs, Newton with 4 / 6 line-search iterations.
+Why a grasp needs both (``docs/design.md``, "The grasp that holds"): MuJoCo's soft constraints
+let a contact under a steady load slip at a rate proportional to ``(1 - d) / d`` times its time
+constant, and ``refsafe`` keeps that time constant >= 2 substeps. The pad-cube pairs therefore
+use ``pad_solimp`` with impedance 0.99 (MuJoCo's default is 0.95), which with 10 ms substeps
+keeps a held cube in the fingers for 20 s; at 20 ms substeps so stiff a contact and the finger
+servos eject the cube when the lift starts. ``LEGACY_OVERRIDES[1]`` restores revision 1 (one
+20 ms substep, the default impedance, 200-step episodes) for runs saved before this change.
 """
 
 from __future__ import annotations
@@ -78,21 +70,39 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import ml_collections
+import numpy as np
 from brax.envs.base import State
 
-from envs.panda import PandaEnv, apply_overrides, as_f32_dict, base_config
+from envs.panda import (
+    PandaEnv,
+    apply_overrides,
+    as_f32_dict,
+    base_config,
+    episode_metrics,
+    hold_update,
+)
 
 Z_REST = 0.02  # cube half-size: the cube's centre height when it rests on the floor
-SUCCESS_STEPS = 10
+MUJOCO_DEFAULT_SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)
+# What earlier revisions of this env meant, for run configs saved before a change (they name
+# the revision they were trained with; the library merges these under the run's overrides).
+LEGACY_OVERRIDES: dict[int, dict[str, Any]] = {
+    1: dict(sim_dt=0.02, pad_solimp=MUJOCO_DEFAULT_SOLIMP, episode_length=200),
+}
+REVISION = 2
 
 
 def default_config() -> ml_collections.ConfigDict:
     """Default franka_pick config (override keys through ``envs.get_environment``)."""
     return base_config(
         action_scale=2.0,
-        episode_length=200,
+        episode_length=250,
         lift_height=0.4,
         grasp_radius=0.04,
+        hold_seconds=2.0,
+        reach_steps=10,
+        sim_dt=0.01,
+        pad_solimp=(0.9, 0.99, 0.001, 0.5, 2.0),
         object_x_range=(0.4, 0.6),
         object_y_range=(-0.2, 0.2),
         reward_scales=dict(
@@ -145,18 +155,12 @@ def is_held(d_left: jax.Array, d_right: jax.Array, grasp_radius: float) -> jax.A
     return jnp.maximum(d_left, d_right) <= grasp_radius
 
 
-def success_update(
-    count: jax.Array, success: jax.Array, at_goal: jax.Array, held: jax.Array
-) -> tuple[jax.Array, jax.Array]:
-    """Consecutive steps at the goal while held, and the latched success flag (0/1 floats)."""
-    count = jnp.where(at_goal & held, count + 1.0, 0.0)
-    return count, jnp.maximum(success, (count >= SUCCESS_STEPS).astype(jnp.float32))
-
-
 class FrankaPick(PandaEnv):
     """Grasp-and-lift with the project's Panda model (see the module docstring)."""
 
     scene = "pick_scene.xml"
+    revision = REVISION
+    legacy_overrides = LEGACY_OVERRIDES
 
     default_config = staticmethod(default_config)
 
@@ -169,11 +173,17 @@ class FrankaPick(PandaEnv):
         self.goal_z = Z_REST + float(self.config.lift_height)
         self._goal_tol = 0.25 * (self.goal_z - Z_REST)
         self._grasp_radius = float(self.config.grasp_radius)
+        self._hold_steps = int(round(self.config.hold_seconds / self.config.ctrl_dt))
         m.site_pos[m.site("goal").id, 2] = self.goal_z  # only drawn, never simulated
 
     @property
     def observation_size(self) -> int:
         return 34
+
+    @property
+    def goal_tolerance(self) -> float:
+        """Half-width of the goal band around ``goal_z`` (m)."""
+        return self._goal_tol
 
     def reset(self, rng: jax.Array) -> State:
         rng, k_arm, k_obj = jax.random.split(rng, 3)
@@ -188,7 +198,7 @@ class FrankaPick(PandaEnv):
         data = self._initial_data(q, qpos=qpos)
         zeros = jnp.zeros(9)
         terms = self._terms(data, zeros)
-        metrics = dict(terms, success=jnp.zeros(()))
+        metrics = dict(terms, **episode_metrics(data.userdata, 0.0, 1, self.dt))
         obs = self._obs(data)
         info = self._info(data, rng)
         reward = self._reward(terms)
@@ -199,11 +209,10 @@ class FrankaPick(PandaEnv):
         obj = data.xpos[self._obj_body]
         raw_terms = self._terms(data, action)
         at_goal = jnp.abs(self.goal_z - obj[2]) <= self._goal_tol
-        # userdata = [consecutive steps near the goal while held, latched success]
-        count, success = success_update(
-            data.userdata[0], data.userdata[1], at_goal, raw_terms["held"] > 0
+        userdata = hold_update(
+            data.userdata, at_goal & (raw_terms["held"] > 0), int(self.config.reach_steps)
         )
-        data = data.replace(userdata=jnp.stack([count, success]).astype(jnp.float32))
+        data = data.replace(userdata=userdata)
 
         bad = self._non_finite(data)
         fell = obj[2] < Z_REST - 0.04
@@ -212,7 +221,8 @@ class FrankaPick(PandaEnv):
         terms = jax.tree.map(lambda x: jnp.where(bad, 0.0, x), raw_terms)
         reward = jnp.where(bad, 0.0, self._reward(terms))
         # Keep metrics that wrappers added (Brax's EvalWrapper adds "reward" at reset).
-        metrics = {**state.metrics, **terms, "success": success}
+        hold = episode_metrics(userdata, done, self._hold_steps, self.dt)
+        metrics = {**state.metrics, **terms, **hold}
         obs = self._sanitize(self._obs(data))
         info = {**state.info, **self._info(data, state.info["rng"])}
         return State(
@@ -225,6 +235,12 @@ class FrankaPick(PandaEnv):
         )
 
     # ----- pieces -------------------------------------------------------------------------
+    def _tune_model(self, model) -> None:
+        pads = {model.geom("left_pad").id, model.geom("right_pad").id}
+        for i in range(model.npair):
+            if {int(model.pair_geom1[i]), int(model.pair_geom2[i])} & pads:
+                model.pair_solimp[i] = np.asarray(self.config.pad_solimp, np.float64)
+
     def _terms(self, data, action: jax.Array) -> dict[str, jax.Array]:
         left, right = self._tips(data)
         return pick_reward_terms(

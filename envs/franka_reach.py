@@ -14,17 +14,18 @@ Observation (27, raw), in this order:
 24:27  target - fingertip midpoint
 ====== ===================================================================
 
-Reward (``state.metrics`` carries each UNSCALED term plus ``success``)::
+Reward (``state.metrics`` carries each UNSCALED term)::
 
     dist    = |target - tip_mid|                  scale -2.0
-    reached = 1 if dist <= 0.02                   scale  1.0
+    at_target = 1 if dist <= 0.02                 scale  1.0
     action  = sum(a^2) of the clipped action      scale -0.01
 
-``success`` latches like franka_pick's: it becomes 1 the first step the midpoint is within
-2 cm and stays 1 for the rest of the episode (so the episode-end value says "reached at some
-point"). Targets are uniform in x 0.35-0.65, y -0.25-0.25, z 0.15-0.5 m; initial arm joints are
-home +- 0.125 rad. episode_length 100 (2 s at 50 Hz): the arm can cross the workspace in well
-under a second at the action's full speed.
+Episode metrics, as franka_pick's (their value at an episode's last step is the episode's):
+``success`` = the midpoint has been within 2 cm of the target for the last ``hold_seconds``
+(1 s = 50 steps) and the episode has not terminated; ``reached`` = latched once within 2 cm;
+``hold_time`` = seconds within 2 cm. Targets are uniform in x 0.35-0.65, y -0.25-0.25,
+z 0.15-0.5 m; initial arm joints are home +- 0.125 rad. episode_length 100 (2 s at 50 Hz): the
+arm can cross the workspace in well under a second at the action's full speed.
 """
 
 from __future__ import annotations
@@ -36,18 +37,27 @@ import jax.numpy as jnp
 import ml_collections
 from brax.envs.base import State
 
-from envs.panda import PandaEnv, apply_overrides, as_f32_dict, base_config
+from envs.panda import (
+    PandaEnv,
+    apply_overrides,
+    as_f32_dict,
+    base_config,
+    episode_metrics,
+    hold_update,
+)
 
 SUCCESS_RADIUS = 0.02
+REVISION = 2  # 2: success = held at the target for the last hold_seconds (1: latched reach)
 
 
 def default_config() -> ml_collections.ConfigDict:
     """Default franka_reach config (override keys through ``envs.get_environment``)."""
     return base_config(
         episode_length=100,
+        hold_seconds=1.0,
         target_low=(0.35, -0.25, 0.15),
         target_high=(0.65, 0.25, 0.5),
-        reward_scales=dict(dist=-2.0, reached=1.0, action=-0.01),
+        reward_scales=dict(dist=-2.0, at_target=1.0, action=-0.01),
     )
 
 
@@ -59,7 +69,7 @@ def reach_reward_terms(
     return as_f32_dict(
         dict(
             dist=dist,
-            reached=jnp.where(dist <= SUCCESS_RADIUS, 1.0, 0.0),
+            at_target=jnp.where(dist <= SUCCESS_RADIUS, 1.0, 0.0),
             action=jnp.sum(jnp.square(action)),
         )
     )
@@ -69,11 +79,14 @@ class FrankaReach(PandaEnv):
     """Reach a random point with the fingertip midpoint (see the module docstring)."""
 
     scene = "reach_scene.xml"
+    revision = REVISION
+    legacy_overrides: dict[int, dict[str, Any]] = {1: {}}  # same physics; only metrics changed
 
     default_config = staticmethod(default_config)
 
     def __init__(self, **overrides: Any):
         super().__init__(apply_overrides(default_config(), overrides, "franka_reach"))
+        self._hold_steps = int(round(self.config.hold_seconds / self.config.ctrl_dt))
 
     @property
     def observation_size(self) -> int:
@@ -91,7 +104,7 @@ class FrankaReach(PandaEnv):
         # The target lives in the mocap body, so Brax's auto-reset restores it with the data.
         data = self._initial_data(q, mocap_pos=target[None].astype(jnp.float32))
         terms = self._terms(data, jnp.zeros(9))
-        metrics = dict(terms, success=jnp.zeros(()))
+        metrics = dict(terms, **episode_metrics(data.userdata, 0.0, 1, self.dt))
         return State(
             data,
             self._obs(data),
@@ -104,13 +117,14 @@ class FrankaReach(PandaEnv):
     def step(self, state: State, action: jax.Array) -> State:
         data, action = self._physics_step(state.pipeline_state, action)
         terms = self._terms(data, action)
-        success = jnp.maximum(data.userdata[0], terms["reached"])
-        data = data.replace(userdata=success[None].astype(jnp.float32))
+        userdata = hold_update(data.userdata, terms["at_target"] > 0, 1)
+        data = data.replace(userdata=userdata)
         bad = self._non_finite(data)
         terms = jax.tree.map(lambda x: jnp.where(bad, 0.0, x), terms)
         reward = jnp.where(bad, 0.0, self._reward(terms))
         # Keep metrics that wrappers added (Brax's EvalWrapper adds "reward" at reset).
-        metrics = {**state.metrics, **terms, "success": success}
+        hold = episode_metrics(userdata, bad, self._hold_steps, self.dt)
+        metrics = {**state.metrics, **terms, **hold}
         return State(
             data,
             self._sanitize(self._obs(data)),

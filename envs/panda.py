@@ -126,6 +126,7 @@ class PandaEnv(Env):
     def __init__(self, config: ml_collections.ConfigDict):
         self._config = config
         self._mj_model = load_model(self.scene, config)
+        self._tune_model(self._mj_model)
         self._mjx_model = mjx.put_model(self._mj_model)
         self._n_substeps = int(round(config.ctrl_dt / config.sim_dt))
         m = self._mj_model
@@ -165,6 +166,9 @@ class PandaEnv(Env):
         return "mjx"
 
     # ----- shared pieces ------------------------------------------------------------------
+    def _tune_model(self, model: mujoco.MjModel) -> None:
+        """Apply env-specific config to the compiled model before it goes to MJX (no-op here)."""
+
     @property
     def action_step(self) -> np.ndarray:
         """Servo-target change per unit action per control step ``[9]`` (rad; m for fingers)."""
@@ -226,6 +230,27 @@ class PandaEnv(Env):
     @staticmethod
     def _sanitize(x: jax.Array) -> jax.Array:
         return jnp.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def hold_update(userdata: jax.Array, at_goal: jax.Array, reach_steps: int) -> jax.Array:
+    """Advance ``userdata = [consecutive steps at the goal, reached (0/1), steps at the goal in
+    all]`` ``[3]`` by one control step; "at the goal" is the task's own test (pick: the cube
+    held inside the goal band). ``reached`` latches after ``reach_steps`` consecutive steps.
+    Floats, so the Data keeps one dtype."""
+    count = jnp.where(at_goal, userdata[0] + 1.0, 0.0)
+    reached = jnp.maximum(userdata[1], (count >= reach_steps).astype(jnp.float32))
+    total = userdata[2] + at_goal.astype(jnp.float32)
+    return jnp.stack([count, reached, total]).astype(jnp.float32)
+
+
+def episode_metrics(
+    userdata: jax.Array, done: jax.Array, hold_steps: int, ctrl_dt: float
+) -> dict[str, jax.Array]:
+    """The episode metrics from the :func:`hold_update` counters: ``success`` (at the goal for
+    the last ``hold_steps`` steps and not terminated: ``done`` is this step's termination),
+    ``reached`` (the latch) and ``hold_time`` (seconds at the goal so far)."""
+    success = (userdata[0] >= hold_steps) & (done == 0)
+    return as_f32_dict(dict(success=success, reached=userdata[1], hold_time=userdata[2] * ctrl_dt))
 
 
 def as_f32_dict(d: Mapping[str, jax.Array]) -> dict[str, jax.Array]:

@@ -16,7 +16,7 @@ from mujoco import mjx
 from envs.franka_pick import FrankaPick
 from envs.panda import HOME_QPOS
 
-APPROACH_END, DESCEND_END, CLOSE_END = 45, 75, 90  # control steps
+APPROACH_END, DESCEND_END, CLOSE_END = 55, 80, 95  # control steps; the lift starts at CLOSE_END
 HOVER = 0.10  # m above the cube during the approach
 MAX_STEP = 0.015  # m of Cartesian target motion per control step
 DAMPING = 1e-3
@@ -73,7 +73,9 @@ def make_scripted_pick_policy(env: FrankaPick):
 def run_scripted_pick(env: FrankaPick, rng: jax.Array, num_episodes: int, steps: int | None = None):
     """Run the scripted controller on ``num_episodes`` randomised episodes in one vmapped scan.
 
-    Returns ``(success [N], object_z [T, N], final_state)``; episodes are not auto-reset.
+    Returns ``(success [N], trace, final_state)``: ``success`` at the last step, ``trace`` a dict
+    of per-step ``[T, N]`` arrays (``object_z``, ``held``, ``in_band_held``: held inside the goal
+    band, ``success``, ``reached``). Episodes are not auto-reset.
     """
     steps = int(steps or env.config.episode_length)
     policy = jax.vmap(make_scripted_pick_policy(env))
@@ -85,10 +87,19 @@ def run_scripted_pick(env: FrankaPick, rng: jax.Array, num_episodes: int, steps:
 
         def body(state, _):
             state = step(state, policy(state.pipeline_state))
-            return state, state.info["object_pos"][:, 2]
+            obj_z = state.info["object_pos"][:, 2]
+            in_band = jnp.abs(env.goal_z - obj_z) <= env.goal_tolerance
+            trace = dict(
+                object_z=obj_z,
+                held=state.metrics["held"],
+                in_band_held=(in_band & (state.metrics["held"] > 0)).astype(jnp.float32),
+                success=state.metrics["success"],
+                reached=state.metrics["reached"],
+            )
+            return state, trace
 
-        state, obj_z = jax.lax.scan(body, state, None, length=steps)
-        return state.metrics["success"], obj_z, state
+        state, trace = jax.lax.scan(body, state, None, length=steps)
+        return state.metrics["success"], trace, state
 
     return rollout(rng)
 

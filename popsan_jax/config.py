@@ -22,6 +22,7 @@ from typing import Any
 from popsan_jax.errors import ConfigError
 
 ACTORS = ("popsan", "mlp")
+CURRENT_ENV_REVISION = 2  # franka_pick/franka_reach revision 2: the grasp that holds
 LR_SCHEDULES = ("constant", "cosine")
 
 # The paper's PopSAN shape (DESIGN.md): pop 10 in and out, hidden 256-256, T = 5.
@@ -41,6 +42,9 @@ class RunConfig:
 
     env: str = "franka_pick"
     env_overrides: dict[str, Any] = dataclasses.field(default_factory=dict)
+    # The env revision the run was made with (envs.<Env>.revision). A config.json without it
+    # predates revisions and is revision 1; its env is rebuilt with envs.legacy_overrides.
+    env_revision: int = CURRENT_ENV_REVISION
     actor: str = "popsan"
     actor_kwargs: dict[str, Any] = dataclasses.field(default_factory=lambda: dict(POPSAN_DEFAULTS))
     critic_hidden_sizes: tuple[int, ...] = (256, 256, 256)
@@ -190,6 +194,7 @@ class RunConfig:
             raise ConfigError(f"cannot read run config {path}: {e}") from e
         if not isinstance(data, dict):
             raise ConfigError(f"run config {path} is not a JSON object")
+        data.setdefault("env_revision", 1)  # written before env revisions existed
         return cls.from_dict(data)
 
     def replace(self, **changes: Any) -> RunConfig:

@@ -39,14 +39,19 @@ def wilson_interval(successes: float, n: int, z: float = Z95) -> tuple[float, fl
 
 
 def summarize(batch: EpisodeBatch) -> dict[str, Any]:
-    """Success rate with its 95 % Wilson CI, mean length and return, per-term means."""
+    """Success rate (the env's ``success`` at the episode's end: pick-and-hold) and the
+    ``reached`` rate (PixMC's latch), each with its 95 % Wilson CI; mean hold time, length and
+    return; per-term means."""
     success = np.asarray(batch.success, dtype=np.float64)
+    reached = np.asarray(batch.reached, dtype=np.float64)
     n = int(success.shape[0])
-    lo, hi = wilson_interval(float(success.sum()), n)
     out: dict[str, Any] = dict(
         episodes=n,
         success_rate=float(success.mean()),
-        success_ci95=[lo, hi],
+        success_ci95=list(wilson_interval(float(success.sum()), n)),
+        reached_rate=float(reached.mean()),
+        reached_ci95=list(wilson_interval(float(reached.sum()), n)),
+        hold_time=float(np.mean(batch.hold_time)),
         episode_length=float(np.mean(batch.length)),
         episode_return=float(np.mean(batch.ret)),
     )
@@ -196,6 +201,7 @@ def energy_sweep(
                 ann_count,
                 stats["success_rate"],
                 tuple(stats["success_ci95"]),
+                reached_rate=stats["reached_rate"],
                 trained=t == trained_t,
                 layer_names=layer_names(len(hidden)),
             )
@@ -206,11 +212,16 @@ def energy_sweep(
 def format_report(report: dict[str, Any]) -> str:
     """Plain-text table of a :func:`summarize` report (plus run/which header if present)."""
     lo, hi = report["success_ci95"]
+    rlo, rhi = report["reached_ci95"]
     lines = [
         f"run: {report.get('run_dir', '?')}  checkpoint: {report.get('which', '?')} "
         f"(env step {report.get('env_steps', '?')})  policy: {report.get('policy', '?')}",
         f"{'episodes':<22}{report['episodes']}",
-        f"{'success rate':<22}{report['success_rate']:.3f}  (95 % CI {lo:.3f}-{hi:.3f}, Wilson)",
+        f"{'success rate':<22}{report['success_rate']:.3f}  (95 % CI {lo:.3f}-{hi:.3f}, Wilson)"
+        "  held at the goal to the end",
+        f"{'reached rate':<22}{report['reached_rate']:.3f}  (95 % CI {rlo:.3f}-{rhi:.3f})"
+        "  PixMC's latch, for the paper",
+        f"{'mean hold time (s)':<22}{report['hold_time']:.2f}",
         f"{'mean episode length':<22}{report['episode_length']:.1f}",
         f"{'mean return':<22}{report['episode_return']:.3f}",
     ]

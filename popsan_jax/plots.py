@@ -20,7 +20,8 @@ from popsan_jax.errors import CheckpointError
 
 ACTOR_COLOURS = {"popsan": "tab:red", "mlp": "tab:blue"}
 CURVE_KEYS = (
-    ("success_rate", "success rate"),
+    ("success_rate", "success rate (held at the goal to the end)"),
+    ("reached_rate", "reached (PixMC's latch)"),
     ("episode_length", "episode length (steps)"),
     ("episode_reward", "episode reward"),
 )
@@ -108,13 +109,15 @@ def read_run_curves(run_dir: str | os.PathLike) -> RunCurves:
     metrics = run_dir / "metrics.jsonl"
     if not metrics.is_file():
         raise CheckpointError(f"{run_dir} has no metrics.jsonl; is it a run directory?")
-    actor = "?"
+    actor, revision = "?", None
     config = run_dir / "config.json"
     if config.is_file():
         try:
-            actor = str(json.loads(config.read_text()).get("actor", "?"))
+            data = json.loads(config.read_text())
         except (OSError, json.JSONDecodeError) as e:
             raise CheckpointError(f"cannot read {config}: {e}") from e
+        actor = str(data.get("actor", "?"))
+        revision = data.get("env_revision", 1)
     rows = []
     for n, line in enumerate(metrics.read_text().splitlines(), start=1):
         if not line.strip():
@@ -131,6 +134,11 @@ def read_run_curves(run_dir: str | os.PathLike) -> RunCurves:
     values = {
         key: np.asarray([r.get(key, np.nan) for r in rows], dtype=float) for key, _ in CURVE_KEYS
     }
+    if revision == 1:
+        # Runs of env revision 1 logged PixMC's latch as "success_rate": it is their "reached";
+        # their pick-and-hold success was never measured during training.
+        values["reached_rate"] = values["success_rate"]
+        values["success_rate"] = np.full_like(values["success_rate"], np.nan)
     steps = np.asarray([r["env_steps"] for r in rows], dtype=float)
     return RunCurves(label=run_dir.name, actor=actor, env_steps=steps, values=values)
 
@@ -168,7 +176,8 @@ def plot_compare(runs: Sequence[RunCurves], path: str | os.PathLike) -> Path:
         ax.xaxis.set_major_formatter(EngFormatter(sep=""))
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-    axes[0].set_ylim(-0.03, 1.03)  # success rate is a fraction
+    for ax in axes[:2]:
+        ax.set_ylim(-0.03, 1.03)  # success and reached rates are fractions
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=legend_cols, fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, legend_in / fig.get_figheight(), 1, 1))

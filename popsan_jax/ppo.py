@@ -36,10 +36,12 @@ from popsan_jax.run_logging import RunLogger, wandb_available
 
 
 def make_env(config: RunConfig) -> Any:
-    """The unwrapped env named by the config (unknown names raise ConfigError)."""
+    """The unwrapped env named by the config, as of the env revision the run was made with
+    (unknown names raise ConfigError)."""
     import envs
 
-    return envs.get_environment(config.env, **dict(config.env_overrides))
+    legacy = envs.legacy_overrides(config.env, config.env_revision)
+    return envs.get_environment(config.env, **{**legacy, **dict(config.env_overrides)})
 
 
 @dataclasses.dataclass
@@ -185,6 +187,8 @@ def train(
         eval_s = time.monotonic() - t0
         return {
             "success_rate": float(np.mean(batch.success)),
+            "reached_rate": float(np.mean(batch.reached)),
+            "hold_time": float(np.mean(batch.hold_time)),
             "episode_reward": float(np.mean(batch.ret)),
             "episode_length": float(np.mean(batch.length)),
             **{f"reward/{k}": float(np.mean(v)) for k, v in batch.terms.items()},

@@ -25,6 +25,9 @@ PolicyFactory = Callable[[Any], PolicyFn]
 """``factory(params) -> policy``: lets one compiled runner serve changing parameters."""
 
 _RECORDED_INFO_KEYS = ("left_tip", "right_tip", "object_pos", "tip_mid", "target_pos")
+EPISODE_END_METRICS = ("success", "reached", "hold_time")
+"""Metrics whose value at an episode's last step is the episode's (the envs keep them so);
+every other metric is averaged over the episode's steps."""
 
 
 @flax.struct.dataclass
@@ -32,7 +35,10 @@ class EpisodeBatch:
     """Per-episode statistics of ``N`` episodes, plus the recorded trajectories if asked for.
 
     Attributes:
-      success: ``[N]`` latched success flag at the episode's last step (0 or 1).
+      success: ``[N]`` the env's ``success`` at the episode's last step (0 or 1): for the Panda
+        tasks, held at the goal for the episode's last seconds without terminating early.
+      reached: ``[N]`` the env's ``reached`` at the last step: the latched "got there once" flag.
+      hold_time: ``[N]`` the env's ``hold_time`` at the last step: seconds spent at the goal.
       length: ``[N]`` control steps until the first ``done`` or the time limit.
       ret: ``[N]`` undiscounted sum of rewards.
       terms: reward term name -> ``[N]`` mean of the unscaled term over the episode's steps.
@@ -45,6 +51,8 @@ class EpisodeBatch:
     """
 
     success: jax.Array
+    reached: jax.Array
+    hold_time: jax.Array
     length: jax.Array
     ret: jax.Array
     terms: dict[str, jax.Array]
@@ -82,7 +90,10 @@ def make_episode_runner(
         policy = policy_factory(params)
         key, reset_key = jax.random.split(key)
         state = reset(jax.random.split(reset_key, num_episodes))
-        term_names = sorted(k for k in state.metrics if k != "success")
+        missing = [k for k in EPISODE_END_METRICS if k not in state.metrics]
+        if missing:
+            raise ValueError(f"the env's metrics lack the episode metrics {missing}")
+        term_names = sorted(k for k in state.metrics if k not in EPISODE_END_METRICS)
         zeros = jnp.zeros((num_episodes,), jnp.float32)
         carry = dict(
             state=state,
@@ -90,7 +101,7 @@ def make_episode_runner(
             alive=jnp.ones((num_episodes,), jnp.float32),
             ret=zeros,
             length=zeros,
-            success=zeros,
+            end={k: zeros for k in EPISODE_END_METRICS},
             terms={k: zeros for k in term_names},
         )
 
@@ -111,7 +122,10 @@ def make_episode_runner(
                 alive=jnp.where(live & (nxt.done == 0), 1.0, 0.0).astype(jnp.float32),
                 ret=add(c["ret"], nxt.reward),
                 length=add(c["length"], jnp.ones_like(alive)),
-                success=jnp.where(live, nxt.metrics["success"].astype(jnp.float32), c["success"]),
+                end={
+                    k: jnp.where(live, nxt.metrics[k].astype(jnp.float32), c["end"][k])
+                    for k in EPISODE_END_METRICS
+                },
                 terms={k: add(c["terms"][k], nxt.metrics[k]) for k in term_names},
             )
             if not record:
@@ -129,7 +143,7 @@ def make_episode_runner(
         final, frames = jax.lax.scan(body, carry, None, length=steps)
         length = final["length"]
         terms = {k: v / jnp.maximum(length, 1.0) for k, v in final["terms"].items()}
-        batch = EpisodeBatch(success=final["success"], length=length, ret=final["ret"], terms=terms)
+        batch = EpisodeBatch(**final["end"], length=length, ret=final["ret"], terms=terms)
         if record:
             batch = batch.replace(**frames)
         return batch

@@ -76,7 +76,13 @@ class PointPick(Env):
         pos = jax.random.uniform(k_pos, (3,), minval=-0.5, maxval=0.5) + _CENTRE
         obj = jax.random.uniform(k_obj, (3,), minval=-0.5, maxval=0.5) + _CENTRE
         zero = jnp.zeros(())
-        metrics = {"distance": zero, "action_cost": zero, "success": zero}
+        metrics = {
+            "distance": zero,
+            "action_cost": zero,
+            "success": zero,
+            "reached": zero,
+            "hold_time": zero,
+        }
         return State(**self._state(pos, obj, reward=zero, done=zero, metrics=metrics))
 
     def step(self, state: State, action: jax.Array) -> State:
@@ -87,7 +93,13 @@ class PointPick(Env):
         cost = 0.01 * jnp.sum(action**2)
         near = (distance < self.success_radius).astype(jnp.float32)
         success = jnp.maximum(state.metrics["success"], near)
-        metrics = {"distance": distance, "action_cost": cost, "success": success}
+        metrics = {
+            "distance": distance,
+            "action_cost": cost,
+            "success": success,
+            "reached": success,
+            "hold_time": state.metrics["hold_time"] + near * self.config.ctrl_dt,
+        }
         fields = dict(reward=-distance - cost, metrics=metrics)
         return state.replace(**self._state(pos, obj, state.info, **fields))
 

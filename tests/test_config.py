@@ -23,8 +23,15 @@ from brax.training.agents.ppo import losses as ppo_losses
 
 import envs
 from popsan_jax import checkpoint
-from popsan_jax.config import POPSAN_DEFAULTS, PRESETS, RunConfig, resolve_config
+from popsan_jax.config import (
+    CURRENT_ENV_REVISION,
+    POPSAN_DEFAULTS,
+    PRESETS,
+    RunConfig,
+    resolve_config,
+)
 from popsan_jax.errors import CheckpointError, ConfigError
+from popsan_jax.ppo import make_env
 from popsan_jax.ppo_update import make_optimizer
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -298,3 +305,33 @@ def test_env_override_argument_and_file_tag():
     assert overrides_tag({}) == ""
     tag = overrides_tag({"grasp_radius": 0.0, "object_x_range": [0.45, 0.55], "a/b": "x y"})
     assert tag == "+grasp_radius=0.0+object_x_range=0.45,0.55+ab=xy"
+
+
+def test_config_without_env_revision_rebuilds_the_env_it_was_trained_with(tmp_path):
+    # A config.json written before env revisions existed is revision 1: its pick env must come
+    # back with the physics it was trained with (one 20 ms substep, MuJoCo's default pad
+    # impedance, 200-step episodes), and its own overrides still win.
+    fresh = resolve_config(overrides=dict(env="franka_pick"))
+    assert fresh.env_revision == 2
+    data = fresh.to_dict()
+    del data["env_revision"]
+    data["env_overrides"] = {"grasp_radius": 0.05}
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(data))
+    old = RunConfig.from_json(path)
+    assert old.env_revision == 1
+    legacy = envs.legacy_overrides("franka_pick", 1)
+    assert legacy["sim_dt"] == 0.02 and legacy["episode_length"] == 200
+    env = make_env(old)
+    assert env.config.sim_dt == 0.02 and env.config.episode_length == 200
+    assert tuple(env.config.pad_solimp) == (0.9, 0.95, 0.001, 0.5, 2.0)
+    assert env.config.grasp_radius == 0.05
+    current = make_env(fresh)
+    assert current.config.sim_dt == 0.01 and current.config.episode_length == 250
+    assert envs.legacy_overrides("franka_pick", 2) == {}
+    with pytest.raises(ConfigError, match="revisions 1..2"):
+        envs.legacy_overrides("franka_pick", 3)
+
+
+def test_current_env_revision_is_every_env_s_revision():
+    assert envs.FrankaPick.revision == envs.FrankaReach.revision == CURRENT_ENV_REVISION

@@ -1,4 +1,4 @@
-"""franka_pick: batched reset/step, obs layout, reward terms, success latch, NaN, wrappers."""
+"""franka_pick: reset/step, obs layout, reward terms, pick-and-hold success, NaN, wrappers."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from _env_fixtures import BATCH, pick  # noqa: F401  (session fixture)
 from brax.envs.wrappers import training
 
 import envs
-from envs.franka_pick import Z_REST, is_held, pick_reward_terms, success_update
-from envs.panda import HOME_QPOS
+from envs.franka_pick import Z_REST, is_held, pick_reward_terms
+from envs.panda import HOME_QPOS, episode_metrics, hold_update
 from popsan_jax.errors import ConfigError
 
 
@@ -40,6 +40,8 @@ def test_reset_and_step_shapes_finite_and_stable_avals(pick, stepped):  # noqa: 
         "goal_bonus",
         "action",
         "success",
+        "reached",
+        "hold_time",
         "held",
     ]:
         assert nxt.metrics[name].shape == (BATCH,) and nxt.metrics[name].dtype == jnp.float32
@@ -117,46 +119,53 @@ def test_reward_terms_hand_computed():
         assert float(terms(0.39, 0.04, tips=one_off)["lift"]) == (0.5 if held else 0.0)
 
 
-def test_success_update_matches_a_python_reference():
+def test_hold_counters_match_a_python_reference():
     rng = np.random.default_rng(0)
-    at_goal = rng.random((64, 6)) < 0.8
-    held = rng.random((64, 6)) < 0.9
-    count, success = jnp.zeros(6), jnp.zeros(6)
-    ref_count, ref_success = [0] * 6, [0] * 6
+    at_goal = rng.random((64, 6)) < 0.85
+    ud = jnp.zeros((6, 3))
+    ref = [[0, 0, 0] for _ in range(6)]  # consecutive, reached, total
+    step = jax.vmap(lambda u, g: hold_update(u, g, 10))
     for t in range(64):
-        count, success = success_update(count, success, jnp.array(at_goal[t]), jnp.array(held[t]))
+        ud = step(ud, jnp.array(at_goal[t]))
         for i in range(6):
-            ref_count[i] = ref_count[i] + 1 if at_goal[t, i] and held[t, i] else 0
-            ref_success[i] = 1 if ref_count[i] >= 10 or ref_success[i] else 0
-        np.testing.assert_array_equal(count, ref_count)
-        np.testing.assert_array_equal(success, ref_success)
-    assert 0 < np.mean(ref_success) < 1  # the sequence exercises both outcomes
+            ref[i][0] = ref[i][0] + 1 if at_goal[t, i] else 0
+            ref[i][1] = 1 if ref[i][0] >= 10 or ref[i][1] else 0
+            ref[i][2] += int(at_goal[t, i])
+        np.testing.assert_array_equal(ud, ref)
+    assert 0 < np.mean([r[1] for r in ref]) < 1  # the sequence exercises both outcomes
 
 
-def _with_object(state, z, count=None, success=None):
-    """Teleport each env's cube to height ``z`` and optionally set the success counters."""
+def test_episode_metrics_need_the_last_hold_and_no_termination():
+    dt = 0.02
+    # 100 consecutive steps at the goal: success; 99: not; terminated this step: not.
+    for count, done, success in [(100, 0.0, 1.0), (99, 0.0, 0.0), (250, 1.0, 0.0)]:
+        m = episode_metrics(jnp.array([count, 1.0, 120.0]), jnp.float32(done), 100, dt)
+        assert float(m["success"]) == success
+        assert float(m["reached"]) == 1.0
+        assert float(m["hold_time"]) == pytest.approx(120 * dt)
+
+
+def _with_object(state, z, userdata=None):
+    """Teleport each env's cube to height ``z`` and optionally set the hold counters ``[3]``."""
     data = state.pipeline_state
     qpos = data.qpos.at[:, 11].set(z)
-    ud = data.userdata
-    if count is not None:
-        ud = ud.at[:, 0].set(count)
-    if success is not None:
-        ud = ud.at[:, 1].set(success)
+    ud = data.userdata if userdata is None else jnp.tile(jnp.asarray(userdata), (BATCH, 1))
     return state.replace(pipeline_state=data.replace(qpos=qpos, userdata=ud))
 
 
-def test_reward_and_success_latch_through_steps(pick):  # noqa: F811
+def test_reward_and_hold_counters_through_steps(pick):  # noqa: F811
     env = pick.env
     state = pick.reset(pick.keys(3))
     # Teleport the cube to the goal while the open hand is far away (what a toss looks like):
-    # even 9 steps "near the goal" do not make a success, the counters reset and the object
-    # terms stay 0. A success latched earlier (env 3) stays. (Counting while held: the unit test
-    # above and the scripted grasp in test_env_scripted.)
-    state = _with_object(state, env.goal_z, count=9.0, success=jnp.array([0.0, 0.0, 0.0, 1.0]))
+    # not held, so nothing counts, the object terms stay 0 and there is no success, although
+    # the counters said 150 steps held in the band (a drop after a hold). ``reached`` stays.
+    state = _with_object(state, env.goal_z, userdata=[150.0, 1.0, 150.0])
     nxt = pick.step(state, jnp.zeros((BATCH, 9)))
     np.testing.assert_array_equal(nxt.metrics["held"], 0.0)
     np.testing.assert_array_equal(nxt.pipeline_state.userdata[:, 0], 0.0)
-    np.testing.assert_array_equal(nxt.metrics["success"], [0.0, 0.0, 0.0, 1.0])
+    np.testing.assert_array_equal(nxt.metrics["success"], 0.0)
+    np.testing.assert_array_equal(nxt.metrics["reached"], 1.0)
+    np.testing.assert_allclose(nxt.metrics["hold_time"], 150 * env.dt, rtol=1e-6)
     for term in ("lift", "object_goal", "goal_bonus"):
         np.testing.assert_array_equal(nxt.metrics[term], 0.0)
     assert np.all(np.asarray(nxt.info["object_pos"])[:, 2] > env.goal_z - 0.05)
@@ -165,10 +174,14 @@ def test_reward_and_success_latch_through_steps(pick):  # noqa: F811
     expected = sum(scales[k] * np.asarray(nxt.metrics[k]) for k in scales)
     np.testing.assert_allclose(nxt.reward, expected, rtol=1e-5)
     assert np.all(np.asarray(nxt.reward) > 0)  # the dist terms
-    # Back on the floor: still nothing to count, the latched success stays.
-    back = pick.step(_with_object(nxt, Z_REST), jnp.zeros((BATCH, 9)))
-    np.testing.assert_array_equal(back.pipeline_state.userdata[:, 0], 0.0)
-    np.testing.assert_array_equal(back.metrics["success"], [0.0, 0.0, 0.0, 1.0])
+    # Out of the workspace: the episode terminates, and a terminated episode never succeeds
+    # (the gate itself: test_episode_metrics_need_the_last_hold_and_no_termination).
+    away = _with_object(nxt, Z_REST, userdata=[150.0, 1.0, 150.0])
+    data = away.pipeline_state
+    away = away.replace(pipeline_state=data.replace(qpos=data.qpos.at[:, 9].set(1.5)))
+    gone = pick.step(away, jnp.zeros((BATCH, 9)))
+    np.testing.assert_array_equal(gone.done, 1.0)  # the cube left the workspace
+    np.testing.assert_array_equal(gone.metrics["success"], 0.0)
 
 
 def test_action_is_clipped_and_moves_servo_targets(pick, stepped):  # noqa: F811

@@ -71,6 +71,8 @@ def test_wilson_interval_hand_values():
 def test_summarize_hand_built_batch():
     batch = EpisodeBatch(
         success=np.array([1.0, 0.0, 1.0, 1.0]),
+        reached=np.array([1.0, 1.0, 1.0, 1.0]),
+        hold_time=np.array([2.0, 0.5, 3.0, 2.5]),
         length=np.array([10.0, 20.0, 30.0, 40.0]),
         ret=np.array([1.0, 2.0, 3.0, 6.0]),
         terms={"distance": np.array([0.1, 0.2, 0.3, 0.4])},
@@ -78,6 +80,8 @@ def test_summarize_hand_built_batch():
     s = evaluation.summarize(batch)
     assert s["episodes"] == 4 and s["success_rate"] == 0.75
     assert s["success_ci95"] == pytest.approx(list(evaluation.wilson_interval(3, 4)))
+    assert s["reached_rate"] == 1.0 and s["hold_time"] == pytest.approx(2.0)
+    assert s["reached_ci95"] == pytest.approx(list(evaluation.wilson_interval(4, 4)))
     assert s["episode_length"] == 25.0 and s["episode_return"] == 3.0
     assert s["reward/distance"] == pytest.approx(0.25)
 

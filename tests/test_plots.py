@@ -35,10 +35,11 @@ def test_tracking_reach_figure_and_bad_keys(tmp_path):
         plots.plot_tracking({"left_tip": pos}, tmp_path / "bad.png")
 
 
-def _fake_run(root, name, actor, evals):
+def _fake_run(root, name, actor, evals, revision=2):
     run = root / name
     run.mkdir()
-    (run / "config.json").write_text(json.dumps({"actor": actor}))
+    config = {"actor": actor} if revision is None else {"actor": actor, "env_revision": revision}
+    (run / "config.json").write_text(json.dumps(config))
     lines = [{"kind": "train", "env_steps": 10, "wall_s": 1.0, "loss/total": 0.1}]
     for steps, success in evals:
         lines.append(
@@ -47,6 +48,7 @@ def _fake_run(root, name, actor, evals):
                 "env_steps": steps,
                 "wall_s": 2.0,
                 "success_rate": success,
+                "reached_rate": min(1.0, 2 * success),
                 "episode_length": 100 - success * 50,
                 "episode_reward": 10 * success,
             }
@@ -61,7 +63,17 @@ def test_read_run_curves_keeps_eval_lines_sorted(tmp_path):
     assert curves.actor == "popsan" and curves.label == "a"
     np.testing.assert_array_equal(curves.env_steps, [1000, 2000])
     np.testing.assert_array_equal(curves.values["success_rate"], [0.25, 0.5])
+    np.testing.assert_array_equal(curves.values["reached_rate"], [0.5, 1.0])
     np.testing.assert_array_equal(curves.values["episode_length"], [87.5, 75.0])
+
+
+def test_revision_1_runs_logged_the_latch_as_success(tmp_path):
+    # A run saved before env revisions (no env_revision in config.json) logged PixMC's latch
+    # as success_rate: its curves show it as "reached", and its hold success as unmeasured.
+    run = _fake_run(tmp_path, "old", "popsan", [(1000, 0.25), (2000, 0.5)], revision=None)
+    curves = plots.read_run_curves(run)
+    np.testing.assert_array_equal(curves.values["reached_rate"], [0.25, 0.5])
+    assert np.all(np.isnan(curves.values["success_rate"]))
 
 
 def test_compare_figure(tmp_path):
