@@ -21,7 +21,7 @@ import time
 import jax
 import jax.numpy as jnp
 from mujoco import mjx
-from train_throughput import cpu_name
+from train_throughput import cpu_name, matmul_gflops
 
 
 def _timed(fn, *args) -> tuple[float, object]:
@@ -96,7 +96,10 @@ def main() -> None:
         variants["revision 1"] = envs.get_environment(
             args.env, **envs.legacy_overrides(args.env, 1)
         )
-    print(f"CPU: {cpu_name()}; devices {jax.devices()}")
+    print(
+        f"CPU: {cpu_name()}; matmul fp32 2048^3 {matmul_gflops():.0f} GFLOP/s; "
+        f"devices {jax.devices()}"
+    )
     for name, env in variants.items():
         print(f"{args.env} {name}: ctrl_dt {env.config.ctrl_dt}, sim_dt {env.config.sim_dt}")
     for n in args.envs:
