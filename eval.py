@@ -83,8 +83,8 @@ def parse_timesteps(text: str) -> list[int]:
 
 def compare(runs: list[str], out: str | None) -> None:
     """Curves figure, and the sample-efficiency table printed and written beside it (``.md``)."""
-    from popsan_jax import plots
-    from popsan_jax.sample_efficiency import sample_efficiency_table
+    from popsan_jax.analysis import plots
+    from popsan_jax.analysis.sample_efficiency import sample_efficiency_table
 
     out = Path(out or "compare.png")
     if out.suffix.lower() not in FIGURE_SUFFIXES:
@@ -106,10 +106,10 @@ def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any
     import_mjx_quietly()  # before brax/MJX modules import it noisily
     import jax
 
-    from popsan_jax import energy, evaluation, latency, plots
-    from popsan_jax.checkpoint import load_run
+    from popsan_jax.analysis import energy, evaluation, latency, plots
     from popsan_jax.config import RunConfig
     from popsan_jax.jax_setup import enable_compilation_cache
+    from popsan_jax.training.checkpoint import load_run
 
     if args.episodes < 1:
         raise UserError(f"--episodes must be >= 1, got {args.episodes}")
@@ -192,7 +192,7 @@ def evaluate(args: argparse.Namespace, environment: Any = None) -> dict[str, Any
         report["latency"] = rows
         print(latency.format_latency(rows))
     if args.video:
-        from popsan_jax.video import render_video
+        from popsan_jax.analysis.video import render_video
 
         dt = float(getattr(loaded.env.config, "ctrl_dt", 0.02))
         qpos = episode["qpos"]
@@ -219,7 +219,7 @@ def rank_checkpoints(
     environment: Any,
 ) -> dict[str, Any]:
     """``--all-checkpoints``: every kept checkpoint over the same episodes; JSON + markdown."""
-    from popsan_jax import checkpoint_sweep, evaluation
+    from popsan_jax.analysis import checkpoint_sweep, evaluation
 
     if args.video:
         raise UserError("--video needs one checkpoint: use --step N, not --all-checkpoints")

@@ -111,14 +111,14 @@ def _main(argv: list[str] | None) -> int:
         import jax
 
         from popsan_jax import config as cfg
-        from popsan_jax import ppo
+        from popsan_jax.training import loop as ppo
 
         enable_compilation_cache()
         given = {k: getattr(args, k) for k in CONFIG_FLAGS if getattr(args, k) is not None}
         actor_given = {k: getattr(args, k) for k in ACTOR_FLAGS if getattr(args, k) is not None}
         if args.resume:
-            from popsan_jax.checkpoint import CONFIG, read_index
             from popsan_jax.errors import CheckpointError
+            from popsan_jax.training.checkpoint import CONFIG, read_index
 
             run_dir = Path(args.resume)
             bad = sorted(set(given) - RESUMABLE) + sorted(actor_given)
@@ -161,8 +161,8 @@ def _interrupted_message(run_dir: Path | None) -> str:
     """What an interrupted run left behind: a checkpoint to resume from, or none yet."""
     if run_dir is None:
         return "interrupted"
-    from popsan_jax.checkpoint import read_index
     from popsan_jax.errors import CheckpointError
+    from popsan_jax.training.checkpoint import read_index
 
     try:
         read_index(run_dir)

@@ -70,8 +70,9 @@ def matmul_gflops(n: int = 2048, repeats: int = 10) -> float:
 def measure(spec: str, args: argparse.Namespace) -> tuple[float, float]:
     """(env steps/s, actor dense FLOPs per env step) for one actor spec (``mlp``, ``popsan``,
     ``popsan+sop``)."""
-    from popsan_jax import ppo, ppo_update
     from popsan_jax.config import resolve_config
+    from popsan_jax.training import iteration as ppo_update
+    from popsan_jax.training import loop as ppo
 
     actor, _, variant = spec.partition("+")
     if variant not in ("", "sop") or (variant and actor != "popsan"):

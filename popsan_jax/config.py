@@ -1,8 +1,8 @@
 """The run configuration: one frozen dataclass, presets, derived sizes and up-front checks.
 
 A :class:`RunConfig` fully describes a training run; it is saved as ``config.json`` in the run
-directory and is all that :func:`popsan_jax.checkpoint.load_run` needs to rebuild the env and the
-networks. No CLI parsing here (train.py maps flags onto :func:`resolve_config`).
+directory and is all that :func:`popsan_jax.training.checkpoint.load_run` needs to rebuild the
+env and the networks. No CLI parsing here (train.py maps flags onto :func:`resolve_config`).
 
 Batch vocabulary (Brax's): each training iteration collects ``batch_size * num_minibatches``
 sequences of ``unroll_length`` steps from ``num_envs`` parallel envs, i.e.

@@ -20,8 +20,8 @@ import jax.numpy as jnp
 from brax.training import distribution, networks, types
 from brax.training.agents.ppo.networks import PPONetworks
 
-from popsan_jax.actor import PopSAN
 from popsan_jax.errors import ConfigError
+from popsan_jax.snn.popsan import PopSAN
 
 ACTORS = ("popsan", "mlp")
 

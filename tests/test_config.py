@@ -22,10 +22,10 @@ import pytest
 from brax.training.agents.ppo import losses as ppo_losses
 
 import envs
-from popsan_jax import checkpoint
 from popsan_jax.config import POPSAN_DEFAULTS, PRESETS, RunConfig, resolve_config
 from popsan_jax.errors import CheckpointError, ConfigError
-from popsan_jax.ppo_update import make_optimizer
+from popsan_jax.training import checkpoint
+from popsan_jax.training.iteration import make_optimizer
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -254,8 +254,8 @@ def test_cli_errors_exit_2_with_one_line_and_write_nothing(argv, match, tmp_path
 def test_sigint_even_if_ignored_and_sigterm_stop_like_ctrl_c(
     signum, checkpointed, tmp_path, capsys, monkeypatch
 ):
-    from popsan_jax import ppo
-    from popsan_jax.checkpoint import INDEX, checkpoint_dir
+    from popsan_jax.training import loop as ppo
+    from popsan_jax.training.checkpoint import INDEX, checkpoint_dir
 
     def killed_mid_training(config, run_dir, **_):
         if checkpointed:  # the index of a run with one checkpoint saved

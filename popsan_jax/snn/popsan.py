@@ -15,9 +15,9 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from popsan_jax.decoder import PopulationDecoder, torch_linear_init
-from popsan_jax.encoder import PopulationEncoder, encode_and_project
-from popsan_jax.lif import DEFAULT_LIF, LIFParams, LIFState, lif_step, lif_zero_state
+from popsan_jax.snn.decoder import PopulationDecoder, torch_linear_init
+from popsan_jax.snn.encoder import PopulationEncoder, encode_and_project
+from popsan_jax.snn.lif import DEFAULT_LIF, LIFParams, LIFState, lif_step, lif_zero_state
 
 Synapse = tuple[jax.Array, jax.Array]  # (kernel [N_in, N_out], bias [N_out])
 

@@ -21,12 +21,14 @@ from brax.envs.wrappers import training as brax_training
 from tensorboardX import SummaryWriter
 from tensorboardX.proto import event_pb2
 
-from popsan_jax import checkpoint, ppo, ppo_update
 from popsan_jax.errors import NonFiniteError
 from popsan_jax.networks import actor_variables, make_actor
-from popsan_jax.run_logging import read_metrics
+from popsan_jax.training import checkpoint
+from popsan_jax.training import iteration as ppo_update
+from popsan_jax.training import loop as ppo
+from popsan_jax.training.run_log import read_metrics
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 STEPS = 640  # env steps per iteration of tiny_config()
 
 
@@ -221,7 +223,7 @@ enable_compilation_cache()
 from _toy_env import PointPick, tiny_config
 from tensorboardX import SummaryWriter
 from tensorboardX.proto import event_pb2
-from popsan_jax import ppo
+from popsan_jax.training import loop as ppo
 config = tiny_config(num_envs={num_envs}, batch_size={num_envs}, total_env_steps={total},
                      num_evals={evals})
 ppo.train(config, {run_dir!r}, environment=PointPick(), progress=False,

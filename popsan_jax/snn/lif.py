@@ -17,7 +17,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from popsan_jax.surrogate import make_spike_fn
+from popsan_jax.snn.surrogate import make_spike_fn
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,7 +75,7 @@ def lif_layer(synaptic_input: jax.Array, params: LIFParams = DEFAULT_LIF) -> jax
     """Run one LIF layer over T from the zero state, given its input for every step.
 
     A building block for single-layer use and tests; ``PopSAN`` steps all its layers in one scan
-    (``popsan_jax.actor.run_lif_stack``) with the same ``lif_step``.
+    (``popsan_jax.snn.popsan.run_lif_stack``) with the same ``lif_step``.
 
     Args:
       synaptic_input: ``[T, B, N]``.

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from popsan_jax import checkpoint
-from popsan_jax.run_logging import read_metrics
+from popsan_jax.training import checkpoint
+from popsan_jax.training.run_log import read_metrics
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 # Measured on the 2-core CPU (see module docstring); both actors share every PPO setting.
 REACH_FLAGS = [

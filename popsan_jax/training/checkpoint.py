@@ -181,8 +181,8 @@ def load_run(
     are merged over the config's own (evaluating under changed env settings; an unknown key
     raises ConfigError). Missing, corrupt or incompatible data raises CheckpointError.
     """
-    from popsan_jax import ppo_update
-    from popsan_jax.ppo import make_env
+    from popsan_jax.training import iteration as ppo_update
+    from popsan_jax.training.loop import make_env
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():

@@ -17,15 +17,17 @@ from _toy_env import PointPick, tiny_popsan_config
 from brax.training.acme import running_statistics
 from brax.training.agents.ppo import networks as ppo_networks
 
-from popsan_jax import evaluation, latency, ppo, ppo_update
-from popsan_jax.checkpoint import load_run
+from popsan_jax.analysis import evaluation, latency
 from popsan_jax.errors import CheckpointError
 from popsan_jax.networks import actor_variables, make_actor
 from popsan_jax.rollout import EpisodeBatch, run_episodes
+from popsan_jax.training import iteration as ppo_update
+from popsan_jax.training import loop as ppo
+from popsan_jax.training.checkpoint import load_run
 
 # eval.py is a script at the repo root, not a package module: load it by path.
 _spec = importlib.util.spec_from_file_location(
-    "eval_cli", Path(__file__).resolve().parent.parent / "eval.py"
+    "eval_cli", Path(__file__).resolve().parents[2] / "eval.py"
 )
 eval_cli = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(eval_cli)

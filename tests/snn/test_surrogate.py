@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from popsan_jax.surrogate import make_spike_fn
+from popsan_jax.snn.surrogate import make_spike_fn
 
 
 def _grad(spike_fn, v, cotangent=1.0):

@@ -1,8 +1,8 @@
 """The jitted pieces of one PPO training iteration, built from Brax's own parts.
 
-See :mod:`popsan_jax.ppo` for why we drive Brax's pieces with our own loop. Shapes: ``E`` envs on
-this device, ``U`` unrolls per iteration, ``L`` unroll length, ``S = U * E`` sequences,
-``M`` minibatches.
+See :mod:`popsan_jax.training.loop` for why we drive Brax's pieces with our own loop. Shapes:
+``E`` envs on this device, ``U`` unrolls per iteration, ``L`` unroll length, ``S = U * E``
+sequences, ``M`` minibatches.
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ from brax.training.acme import running_statistics
 from brax.training.agents.ppo import losses as ppo_losses
 from brax.training.agents.ppo import networks as ppo_networks
 
-from popsan_jax import spike_cost
 from popsan_jax.config import RunConfig
+from popsan_jax.training import loss as spike_cost
 
 AXIS = "devices"
 
@@ -184,7 +184,7 @@ def make_iteration_fn(
 ) -> Callable[[TrainingState, Any, jax.Array], tuple[TrainingState, Any, dict[str, jax.Array]]]:
     """One full iteration (unroll, normaliser update, epochs of minibatch SGD) for one device.
 
-    The loss is :func:`popsan_jax.spike_cost.make_loss_fn`'s: Brax's PPO loss, plus the SOP
+    The loss is :func:`popsan_jax.training.loss.make_loss_fn`'s: Brax's PPO loss, plus the SOP
     penalty when ``config.sop_cost > 0``.
 
     ``env`` is the training-wrapped (vmapped, auto-reset) env; ``diagnostics_fn(state, obs [B,

@@ -6,7 +6,7 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from popsan_jax import plots
+from popsan_jax.analysis import plots
 from popsan_jax.errors import CheckpointError
 
 

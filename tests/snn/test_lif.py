@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from popsan_jax import LIFParams
-from popsan_jax.lif import lif_layer, lif_step, lif_zero_state
+from popsan_jax.snn.lif import lif_layer, lif_step, lif_zero_state
 
 # Two neurons, four steps of synaptic input (W o_prev + b already applied).
 INPUTS = np.array([[0.3, 0.6], [0.3, -0.2], [0.3, 0.0], [0.0, 0.4]], np.float32)

@@ -27,7 +27,10 @@ from popsan_jax.errors import UserError
 
 GL_BACKENDS = ("egl", "osmesa")
 INSTALL_HINT = "for CPU rendering install OSMesa: apt-get install -y libosmesa6"
-_WORKER = "import sys; from popsan_jax.video import _render_worker; _render_worker(*sys.argv[1:])"
+_WORKER = (
+    "import sys; from popsan_jax.analysis.video import _render_worker; "
+    "_render_worker(*sys.argv[1:])"
+)
 
 
 def render_video(

@@ -11,13 +11,14 @@ from pathlib import Path
 import jax
 import pytest
 
-from popsan_jax import checkpoint, ppo_update
+from popsan_jax.analysis.video import GL_BACKENDS, gl_available
 from popsan_jax.config import resolve_config
-from popsan_jax.ppo import make_env
-from popsan_jax.video import GL_BACKENDS, gl_available
+from popsan_jax.training import checkpoint
+from popsan_jax.training import iteration as ppo_update
+from popsan_jax.training.loop import make_env
 
 _spec = importlib.util.spec_from_file_location(
-    "eval_cli", Path(__file__).resolve().parent.parent / "eval.py"
+    "eval_cli", Path(__file__).resolve().parents[2] / "eval.py"
 )
 eval_cli = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(eval_cli)

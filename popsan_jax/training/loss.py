@@ -26,8 +26,8 @@ from brax.training.acme import running_statistics
 from brax.training.agents.ppo import losses as ppo_losses
 from brax.training.agents.ppo import networks as ppo_networks
 
+from popsan_jax.analysis.energy import sops_per_inference
 from popsan_jax.config import RunConfig
-from popsan_jax.energy import sops_per_inference
 
 SpikesFn = Callable[[Any, Any, jax.Array], tuple[jax.Array, ...]]
 

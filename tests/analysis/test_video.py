@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from _toy_env import PointPick
 
+from popsan_jax.analysis.video import GL_BACKENDS, gl_available, render_video
 from popsan_jax.errors import UserError
-from popsan_jax.video import GL_BACKENDS, gl_available, render_video
 
 HAVE_GL = any(gl_available(b) for b in GL_BACKENDS)
 # subprocess forks the (multithreaded) JAX process only to exec a fresh Python at once.

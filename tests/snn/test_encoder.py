@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from popsan_jax.encoder import PopulationEncoder, encode_and_project, regular_spike_train
+from popsan_jax.snn.encoder import PopulationEncoder, encode_and_project, regular_spike_train
 
 T = 5
 

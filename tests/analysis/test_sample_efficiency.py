@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from popsan_jax.plots import RunCurves
-from popsan_jax.sample_efficiency import first_steps_at, sample_efficiency_table
+from popsan_jax.analysis.plots import RunCurves
+from popsan_jax.analysis.sample_efficiency import first_steps_at, sample_efficiency_table
 
 
 def _curves(label, actor, points):

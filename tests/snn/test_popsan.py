@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from popsan_jax import PopSAN
-from popsan_jax.encoder import regular_spike_train
-from popsan_jax.lif import lif_layer
+from popsan_jax.snn.encoder import regular_spike_train
+from popsan_jax.snn.lif import lif_layer
 
 OBS, ACT, B = 6, 3, 16
 KW = dict(action_size=ACT, hidden_sizes=(32, 24), encoder_pop_dim=5, decoder_pop_dim=4, timesteps=5)

@@ -24,8 +24,8 @@ from typing import Any
 
 import jax
 
-from popsan_jax.checkpoint import load_run, read_index
-from popsan_jax.evaluation import rollouts, summarize
+from popsan_jax.analysis.evaluation import rollouts, summarize
+from popsan_jax.training.checkpoint import load_run, read_index
 
 
 def evaluate_checkpoints(

@@ -9,8 +9,8 @@ hook for logging and checkpointing. So this loop REUSES Brax's pieces instead of
 ``gradients.gradient_update_fn``, ``envs.wrappers.training.wrap`` and ``ppo.networks``.
 
 One training iteration (unroll, normaliser update, minibatch epochs) is a single pmapped
-function over ``jax.local_devices()`` (:mod:`popsan_jax.ppo_update`); the host loop only logs,
-evaluates, checks for NaN and writes checkpoints between iterations.
+function over ``jax.local_devices()`` (:mod:`popsan_jax.training.iteration`); the host loop only
+logs, evaluates, checks for NaN and writes checkpoints between iterations.
 """
 
 from __future__ import annotations
@@ -27,12 +27,14 @@ import numpy as np
 from brax.envs.wrappers import training as brax_training
 from brax.training.agents.ppo import networks as ppo_networks
 
-from popsan_jax import checkpoint, ppo_update, spike_cost
+from popsan_jax.analysis.energy import sops_per_inference
 from popsan_jax.config import RunConfig
-from popsan_jax.energy import sops_per_inference
 from popsan_jax.errors import ConfigError, NonFiniteError
 from popsan_jax.rollout import make_episode_runner
-from popsan_jax.run_logging import RunLogger, wandb_available
+from popsan_jax.training import checkpoint
+from popsan_jax.training import iteration as ppo_update
+from popsan_jax.training import loss as spike_cost
+from popsan_jax.training.run_log import RunLogger, wandb_available
 
 
 def make_env(config: RunConfig) -> Any:

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from popsan_jax.plots import RunCurves
+from popsan_jax.analysis.plots import RunCurves
 
 DEFAULT_LEVELS = (0.5, 0.8, 0.9)
 ACTOR_NAMES = {"popsan": "PopSAN", "mlp": "MLP"}

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from popsan_jax import energy
+from popsan_jax.analysis import energy
 
 
 def _tiny_spikes():

@@ -1,8 +1,8 @@
 """Evaluation of a saved run: rollouts -> report with a 95 % Wilson CI, energy sweep over T.
 
-Everything starts from :class:`popsan_jax.checkpoint.LoadedRun`, i.e. from the run directory
-alone. The PopSAN's parameters do not depend on T, so the energy sweep rebuilds the networks
-from the saved config with another ``timesteps`` and reuses the same parameters.
+Everything starts from :class:`popsan_jax.training.checkpoint.LoadedRun`, i.e. from the run
+directory alone. The PopSAN's parameters do not depend on T, so the energy sweep rebuilds the
+networks from the saved config with another ``timesteps`` and reuses the same parameters.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 from brax.training.acme import running_statistics
 from brax.training.agents.ppo import networks as ppo_networks
 
-from popsan_jax import energy
+from popsan_jax.analysis import energy
 from popsan_jax.networks import actor_variables, make_actor
 from popsan_jax.rollout import EpisodeBatch, run_episodes
 
@@ -56,7 +56,7 @@ def summarize(batch: EpisodeBatch) -> dict[str, Any]:
 
 def networks_at_timesteps(loaded: Any, timesteps: int | None) -> ppo_networks.PPONetworks:
     """The run's networks, with the PopSAN rebuilt at ``timesteps`` (None = as trained)."""
-    from popsan_jax import ppo_update
+    from popsan_jax.training import iteration as ppo_update
 
     if timesteps is None or timesteps == trained_timesteps(loaded.config):
         return loaded.networks

@@ -9,10 +9,13 @@ import pytest
 from _toy_env import PointPick, tiny_config
 from brax.training.acme import running_statistics
 
-from popsan_jax import checkpoint, ppo, ppo_update, spike_cost
-from popsan_jax.energy import sops_per_inference
+from popsan_jax.analysis.energy import sops_per_inference
 from popsan_jax.errors import ConfigError
-from popsan_jax.run_logging import read_metrics
+from popsan_jax.training import checkpoint
+from popsan_jax.training import iteration as ppo_update
+from popsan_jax.training import loop as ppo
+from popsan_jax.training import loss as spike_cost
+from popsan_jax.training.run_log import read_metrics
 
 STEPS = 640  # env steps per iteration of tiny_config()
 
