@@ -18,6 +18,9 @@ import jax
 import jax.numpy as jnp
 from mujoco import mjx
 
+import envs
+from popsan_jax.jax_setup import enable_compilation_cache
+
 
 def _timed(fn, *args) -> tuple[float, object]:
     t0 = time.perf_counter()
@@ -77,12 +80,7 @@ def main() -> None:
     parser.add_argument("--cache", action="store_true", help="use the persistent compile cache")
     args = parser.parse_args()
     if args.cache:
-        from popsan_jax.jax_setup import enable_compilation_cache
-
         enable_compilation_cache()
-
-    import envs
-
     env = envs.get_environment(args.env)
     print(
         f"{args.env}: ctrl_dt {env.config.ctrl_dt}, sim_dt {env.config.sim_dt}, "

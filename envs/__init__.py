@@ -10,9 +10,9 @@ from typing import Any
 
 from brax.envs.base import Env
 
+from envs.errors import EnvConfigError
 from envs.franka_pick import FrankaPick
 from envs.franka_reach import FrankaReach
-from popsan_jax.errors import ConfigError
 
 _ENVS = {"franka_pick": FrankaPick, "franka_reach": FrankaReach}
 
@@ -25,18 +25,17 @@ def list_environments() -> list[str]:
 def get_environment(name: str, **config_overrides: Any) -> Env:
     """Build env ``name``; ``config_overrides`` replace keys of its ``default_config()``.
 
-    Unknown names or override keys raise :class:`popsan_jax.errors.ConfigError`.
+    Unknown names or override keys raise :class:`envs.errors.EnvConfigError`.
     """
     if name not in _ENVS:
-        raise ConfigError(f"unknown env {name!r}; available: {', '.join(list_environments())}")
+        raise EnvConfigError(f"unknown env {name!r}; available: {', '.join(list_environments())}")
     return _ENVS[name](**config_overrides)
 
 
-def default_config(name: str):
-    """The default config (``ml_collections.ConfigDict``) of env ``name``."""
-    if name not in _ENVS:
-        raise ConfigError(f"unknown env {name!r}; available: {', '.join(list_environments())}")
-    return _ENVS[name].default_config()
-
-
-__all__ = ["FrankaPick", "FrankaReach", "default_config", "get_environment", "list_environments"]
+__all__ = [
+    "EnvConfigError",
+    "FrankaPick",
+    "FrankaReach",
+    "get_environment",
+    "list_environments",
+]

@@ -10,7 +10,7 @@ Each checkpoint is run by the same code path as a single evaluation (its paramet
 over, one compile per checkpoint) rather than one runner with parameters as arguments: that
 other program rounds the first actions differently (by about 1e-6) and the contact dynamics
 amplify it until trajectories part within 20–50 steps, so its success rates would differ from
-``--step N``'s by a few episodes per thousand (93.3 against 93.1 % on mlp-s0's best).
+``--step N``'s by a few episodes per thousand (docs/notebook/, "Which checkpoint").
 
 The highest success rate was selected on these very episodes, so it is biased upwards (the
 winner's curse); re-check the chosen checkpoint on other episodes (``eval.py --seed N``).

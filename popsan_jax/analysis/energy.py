@@ -42,8 +42,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 E_MAC_PJ = 4.6
@@ -135,43 +133,6 @@ def popsan_layer_sizes(
     )
 
 
-def spike_totals(spikes: Sequence[jax.Array], weight: jax.Array | None = None) -> jax.Array:
-    """Weighted spike count per layer, summed over timesteps, neurons and observations.
-
-    Args:
-      spikes: one ``[T, B, N_l]`` 0/1 array per spiking layer.
-      weight: ``[B]`` per-observation weight (1 for alive steps, 0 for padding); None = all 1.
-
-    Returns:
-      ``[L]`` float32 totals, jit-friendly (no host transfer).
-    """
-    totals = []
-    for s in spikes:
-        per_obs = jnp.sum(s.astype(jnp.float32), axis=(0, 2))
-        if weight is not None:
-            per_obs = per_obs * weight.astype(jnp.float32)
-        totals.append(jnp.sum(per_obs))
-    return jnp.stack(totals)
-
-
-def sops_per_inference(spikes: Sequence[jax.Array]) -> jax.Array:
-    """Mean synaptic operations per inference of one batch, differentiable through the spikes.
-
-    The same count as :func:`snn_ops_from_totals`' ``sops`` (every layer but the output
-    populations drives the next layer, one AC per spike and target), with each layer's fan-out
-    read from the next layer's width.
-
-    Args:
-      spikes: one ``[T, B, N_l]`` array per spiking layer (encoder, hidden..., output).
-
-    Returns:
-      scalar float32: ``sum_l sum_{t, n} spikes_l / B * N_{l+1}``.
-    """
-    totals = spike_totals(spikes)[:-1]
-    fan_out = jnp.asarray([float(s.shape[-1]) for s in spikes[1:]], jnp.float32)
-    return jnp.sum(totals * fan_out) / spikes[0].shape[1]
-
-
 def snn_ops_from_totals(
     totals: Sequence[float],
     num_observations: float,
@@ -183,7 +144,7 @@ def snn_ops_from_totals(
 
     Args:
       totals: ``[L]`` spike counts per spiking layer (encoder, hidden..., output), summed over
-        timesteps, neurons and observations (see :func:`spike_totals`).
+        timesteps, neurons and observations (see :func:`popsan_jax.snn.ops.spike_totals`).
       num_observations: how many inferences the totals cover.
       layer_sizes: neurons per spiking layer, as :func:`popsan_layer_sizes`.
       timesteps: ``T``.
@@ -211,19 +172,6 @@ def snn_ops_from_totals(
         firing_rates=rates,
         timesteps=int(timesteps),
     )
-
-
-def count_snn_ops(
-    spikes: Sequence[jax.Array],
-    layer_sizes: Sequence[int],
-    action_size: int,
-    weight: jax.Array | None = None,
-) -> SNNOps:
-    """Ops per inference from one batch of measured spikes ``[T, B, N_l]`` per layer."""
-    timesteps, batch = spikes[0].shape[:2]
-    totals = np.asarray(spike_totals(spikes, weight))
-    n = float(batch if weight is None else np.sum(np.asarray(weight)))
-    return snn_ops_from_totals(totals, n, layer_sizes, timesteps, action_size)
 
 
 def energy_row(

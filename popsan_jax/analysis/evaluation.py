@@ -7,22 +7,26 @@ networks from the saved config with another ``timesteps`` and reuses the same pa
 
 from __future__ import annotations
 
-import json
 import math
-import os
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from brax.training.acme import running_statistics
 from brax.training.agents.ppo import networks as ppo_networks
 
 from popsan_jax.analysis import energy
+from popsan_jax.config import POPSAN_DEFAULTS
 from popsan_jax.networks import actor_variables, make_actor
 from popsan_jax.rollout import EpisodeBatch, run_episodes
+from popsan_jax.snn.ops import spike_totals, spiking_layer_names
+from popsan_jax.training.setup import (
+    at_timesteps,
+    build_networks,
+    make_spikes_fn,
+    trained_timesteps,
+)
 
 Z95 = 1.959963984540054  # two-sided 95 % normal quantile
 
@@ -56,19 +60,10 @@ def summarize(batch: EpisodeBatch) -> dict[str, Any]:
 
 def networks_at_timesteps(loaded: Any, timesteps: int | None) -> ppo_networks.PPONetworks:
     """The run's networks, with the PopSAN rebuilt at ``timesteps`` (None = as trained)."""
-    from popsan_jax.training import iteration as ppo_update
-
-    if timesteps is None or timesteps == trained_timesteps(loaded.config):
+    config = at_timesteps(loaded.config, timesteps)
+    if config is loaded.config:
         return loaded.networks
-    config = loaded.config.replace(
-        actor_kwargs={**loaded.config.actor_kwargs, "timesteps": timesteps}
-    )
-    return ppo_update.build_networks(config, loaded.env.observation_size, loaded.env.action_size)
-
-
-def trained_timesteps(config: Any) -> int | None:
-    """T the PopSAN was trained with (None for an ANN run)."""
-    return int(config.actor_kwargs["timesteps"]) if config.actor == "popsan" else None
+    return build_networks(config, loaded.env.observation_size, loaded.env.action_size)
 
 
 def episode_keys(seed: int) -> tuple[jax.Array, jax.Array]:
@@ -116,10 +111,9 @@ def measure_snn_ops(
 
     Returns the ops per inference and the spiking layer sizes.
     """
-    cfg = loaded.config
-    kwargs = {**cfg.actor_kwargs, "timesteps": int(timesteps)}
-    actor = make_actor("popsan", kwargs, loaded.env.action_size)
-    variables = actor_variables(loaded.policy_params)
+    config = at_timesteps(loaded.config, timesteps)
+    kwargs = config.actor_kwargs
+    spikes_fn = make_spikes_fn(config, loaded.env.action_size)
     sizes = energy.popsan_layer_sizes(
         loaded.env.observation_size,
         loaded.env.action_size,
@@ -130,10 +124,8 @@ def measure_snn_ops(
 
     @jax.jit
     def totals(obs: jax.Array, weight: jax.Array) -> jax.Array:
-        # Same preprocessing as the policy network (ppo_update.build_networks).
-        x = running_statistics.normalize(obs, loaded.normalizer_params, max_abs_value=cfg.obs_clip)
-        _, spikes = actor.apply(variables, x, return_spikes=True)
-        return energy.spike_totals(spikes, weight)
+        spikes = spikes_fn(loaded.policy_params, loaded.normalizer_params, obs)
+        return spike_totals(spikes, weight)
 
     m = observations.shape[0]
     if m == 0:
@@ -149,10 +141,6 @@ def measure_snn_ops(
         acc += np.asarray(totals(jnp.asarray(padded), jnp.asarray(weight)), dtype=np.float64)
     ops = energy.snn_ops_from_totals(acc, m, sizes, timesteps, loaded.env.action_size)
     return ops, sizes
-
-
-def layer_names(num_hidden: int) -> list[str]:
-    return ["encoder", *(f"hidden_{k}" for k in range(num_hidden)), "output"]
 
 
 def energy_sweep(
@@ -197,7 +185,7 @@ def energy_sweep(
                 stats["success_rate"],
                 tuple(stats["success_ci95"]),
                 trained=t == trained_t,
-                layer_names=layer_names(len(hidden)),
+                layer_names=spiking_layer_names(len(hidden)),
             )
         )
     return rows
@@ -216,14 +204,6 @@ def format_report(report: dict[str, Any]) -> str:
     ]
     lines += [f"  {k:<20}{v:.4f}" for k, v in report.items() if k.startswith("reward/")]
     return "\n".join(lines)
-
-
-def write_json(path: str | os.PathLike, data: dict[str, Any]) -> Path:
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
-    os.replace(tmp, path)
-    return path
 
 
 def showcase_index(batch: EpisodeBatch) -> int:
@@ -256,8 +236,6 @@ def latency_actors(loaded: Any, ann_hidden_sizes: Sequence[int] | None) -> dict[
     The evaluated run's own actor keeps its trained params; the other one is freshly
     initialised (timing does not depend on the weights' values).
     """
-    from popsan_jax.config import POPSAN_DEFAULTS
-
     cfg, env = loaded.config, loaded.env
     own = make_actor(cfg.actor, cfg.actor_kwargs, env.action_size)
     hidden = tuple(cfg.actor_kwargs["hidden_sizes"])

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from popsan_jax.errors import CheckpointError
+from popsan_jax.io import read_jsonl
 
 ACTOR_COLOURS = {"popsan": "tab:red", "mlp": "tab:blue"}
 CURVE_KEYS = (
@@ -27,6 +28,7 @@ CURVE_KEYS = (
 
 
 def _pyplot() -> Any:
+    # Imported on first use, to select Agg only then (module docstring).
     import matplotlib
 
     matplotlib.use("Agg")
@@ -115,16 +117,7 @@ def read_run_curves(run_dir: str | os.PathLike) -> RunCurves:
             actor = str(json.loads(config.read_text()).get("actor", "?"))
         except (OSError, json.JSONDecodeError) as e:
             raise CheckpointError(f"cannot read {config}: {e}") from e
-    rows = []
-    for n, line in enumerate(metrics.read_text().splitlines(), start=1):
-        if not line.strip():
-            continue
-        try:
-            record = json.loads(line)
-        except json.JSONDecodeError as e:
-            raise CheckpointError(f"{metrics}:{n} is not valid JSON: {e.msg}") from e
-        if record.get("kind") == "eval":
-            rows.append(record)
+    rows = [r for r in read_jsonl(metrics) if r.get("kind") == "eval"]
     if not rows:
         raise CheckpointError(f"{metrics} has no eval lines to plot")
     rows.sort(key=lambda r: r["env_steps"])
@@ -161,11 +154,11 @@ def plot_compare(runs: Sequence[RunCurves], path: str | os.PathLike) -> Path:
                 ms=3,
                 label=f"{name}: {run.label}",
             )
-    from matplotlib.ticker import EngFormatter  # 400k, 20M: raw step counts overlap
+    from matplotlib.ticker import EngFormatter  # after _pyplot() chose the backend
 
     for ax, (_, ylabel) in zip(axes, CURVE_KEYS, strict=True):
         ax.set_xlabel("env steps")
-        ax.xaxis.set_major_formatter(EngFormatter(sep=""))
+        ax.xaxis.set_major_formatter(EngFormatter(sep=""))  # 400k, 20M: raw counts overlap
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     axes[0].set_ylim(-0.03, 1.03)  # success rate is a fraction

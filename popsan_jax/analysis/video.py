@@ -21,6 +21,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+import mujoco
 import numpy as np
 
 from popsan_jax.errors import UserError
@@ -50,8 +51,6 @@ def render_video(
 
     Returns ``(path, backend used)``. Raises UserError when no GL backend can render.
     """
-    import mujoco
-
     qpos = np.asarray(qpos, dtype=np.float64)
     if qpos.ndim != 2 or qpos.shape[1] != mj_model.nq or qpos.shape[0] == 0:
         raise ValueError(f"qpos must be [T, {mj_model.nq}] with T > 0, got {qpos.shape}")
@@ -92,17 +91,6 @@ def render_video(
     )
 
 
-def gl_available(backend: str = "osmesa") -> bool:
-    """Whether ``backend`` can make a MuJoCo GL context (probed in a subprocess)."""
-    code = (
-        "import mujoco; m = mujoco.MjModel.from_xml_string('<mujoco/>'); "
-        "r = mujoco.Renderer(m, 16, 16); r.update_scene(mujoco.MjData(m)); r.render()"
-    )
-    env = dict(os.environ, MUJOCO_GL=backend, PYOPENGL_PLATFORM=backend)
-    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, timeout=120)
-    return proc.returncode == 0
-
-
 def _render_worker(
     model_file: str,
     qpos_file: str,
@@ -113,8 +101,7 @@ def _render_worker(
     mocap_file: str | None = None,
 ) -> None:
     """Subprocess body: MUJOCO_GL is already set in this process's environment."""
-    import imageio
-    import mujoco
+    import imageio  # only the render subprocess writes video files
 
     model = mujoco.MjModel.from_binary_path(model_file)
     # The offscreen buffer must be at least the frame size.

@@ -32,7 +32,7 @@ def encoder_spike_steps(activity: jax.Array, timesteps: int) -> list[jax.Array]:
     A Python-unrolled loop (T is small and static) rather than ``lax.scan``: separate per-step
     outputs let XLA compute all T steps in one multi-output fusion and feed per-step matmuls,
     where a stacked scan output made it recompute the Gaussian ``exp`` once per step
-    (encoder + first-layer matmul at B = 2048: 19.4 vs 23.8 ms CPU time, the matmul alone 13.8).
+    (docs/design.md, "The encoder unroll").
     """
     voltage = jnp.zeros_like(activity)
     spikes = []
@@ -40,27 +40,6 @@ def encoder_spike_steps(activity: jax.Array, timesteps: int) -> list[jax.Array]:
         spike, voltage = encoder_step(activity, voltage)
         spikes.append(spike)
     return spikes
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
-def regular_spike_train(activity: jax.Array, timesteps: int) -> jax.Array:
-    """Deterministic spike trains ``[T, *activity.shape]`` from activity in (0, 1].
-
-    Backward is the straight-through estimator: each step's spike has gradient 1 w.r.t. the
-    activity, so the cotangent is summed over T.
-    """
-    return jnp.stack(encoder_spike_steps(activity, timesteps))
-
-
-def _regular_fwd(activity: jax.Array, timesteps: int) -> tuple[jax.Array, None]:
-    return regular_spike_train(activity, timesteps), None
-
-
-def _regular_bwd(timesteps: int, _: None, g: jax.Array) -> tuple[jax.Array]:
-    return (jnp.sum(g, axis=0),)
-
-
-regular_spike_train.defvjp(_regular_fwd, _regular_bwd)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
@@ -123,9 +102,11 @@ def evenly_spaced_means(mean_range: Sequence[float], pop_dim: int) -> nn.initial
 
 
 class PopulationEncoder(nn.Module):
-    """Observation ``[B, obs_dim]`` -> encoder spikes ``[T, B, obs_dim * pop_dim]``.
+    """The encoder's learnable receptive fields: observation ``[B, obs_dim]`` -> activity.
 
     Neuron ``i * pop_dim + j`` encodes observation dimension ``i`` with mean ``mean[i, j]``.
+    Its spike trains come from :func:`encode_and_project` together with the first layer's
+    input (``PopSAN`` calls ``activity`` only; ``init`` with ``method="activity"``).
     """
 
     pop_dim: int = 10
@@ -145,7 +126,3 @@ class PopulationEncoder(nn.Module):
         mean, std = mean.astype(self.dtype), std.astype(self.dtype)
         activity = jnp.exp(-0.5 * jnp.square(obs - mean) / jnp.square(std))
         return activity.reshape(*obs.shape[:-2], obs_dim * self.pop_dim)
-
-    def __call__(self, obs: jax.Array) -> jax.Array:
-        """Spike trains ``[T, B, obs_dim * pop_dim]``."""
-        return regular_spike_train(self.activity(obs), self.timesteps)

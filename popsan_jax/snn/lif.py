@@ -1,4 +1,4 @@
-"""Current-based LIF neurons (PopSAN Algorithm 1), one step and a layer unrolled over T.
+"""Current-based LIF neurons (PopSAN Algorithm 1): the state and one time step.
 
 Per step, with the previous layer's spikes ``o_prev`` already multiplied by the weights::
 
@@ -69,26 +69,3 @@ def lif_step(
     voltage = params.voltage_decay * state.voltage * (1.0 - state.spike) + current
     spike = spike_fn(voltage)
     return spike, LIFState(current, voltage, spike)
-
-
-def lif_layer(synaptic_input: jax.Array, params: LIFParams = DEFAULT_LIF) -> jax.Array:
-    """Run one LIF layer over T from the zero state, given its input for every step.
-
-    A building block for single-layer use and tests; ``PopSAN`` steps all its layers in one scan
-    (``popsan_jax.snn.popsan.run_lif_stack``) with the same ``lif_step``.
-
-    Args:
-      synaptic_input: ``[T, B, N]``.
-      params: LIF constants.
-
-    Returns:
-      Spikes ``[T, B, N]``, each exactly 0 or 1.
-    """
-
-    def body(state: LIFState, x: jax.Array) -> tuple[LIFState, jax.Array]:
-        spike, state = lif_step(x, state, params)
-        return state, spike
-
-    init = lif_zero_state(synaptic_input.shape[1:], synaptic_input.dtype)
-    _, spikes = jax.lax.scan(body, init, synaptic_input, unroll=True)
-    return spikes

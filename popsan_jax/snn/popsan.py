@@ -4,7 +4,8 @@ Algorithm 1 steps every layer once per time step, T times, from the zero state. 
 the first synaptic layer depend on no LIF state, so their T steps are computed up front in one
 matmul (``encode_and_project``); the LIF layers then run in one ``lax.scan`` over T whose body
 steps layer 1, 2, ..., output in order. The scan is fully unrolled so XLA sees the whole T-step
-graph (per-step matmuls and fused elementwise neuron updates) instead of a loop.
+graph (per-step matmuls and fused elementwise neuron updates) instead of a loop
+(docs/design.md, "The encoder unroll").
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import jax.numpy as jnp
 from popsan_jax.snn.decoder import PopulationDecoder, torch_linear_init
 from popsan_jax.snn.encoder import PopulationEncoder, encode_and_project
 from popsan_jax.snn.lif import DEFAULT_LIF, LIFParams, LIFState, lif_step, lif_zero_state
+from popsan_jax.snn.ops import spiking_layer_names
 
 Synapse = tuple[jax.Array, jax.Array]  # (kernel [N_in, N_out], bias [N_out])
 
@@ -102,7 +104,7 @@ class PopSAN(nn.Module):
             name="encoder",
         ).activity(obs)
         sizes = [activity.shape[-1], *self.hidden_sizes, self.action_size * self.decoder_pop_dim]
-        names = [f"hidden_{k}" for k in range(len(self.hidden_sizes))] + ["output"]
+        names = spiking_layer_names(len(self.hidden_sizes))[1:]
         synapses = [
             jax.tree.map(lambda x: x.astype(self.dtype), SynapseParams(n_out, n_in, name=name)())
             for n_in, n_out, name in zip(sizes[:-1], sizes[1:], names, strict=True)

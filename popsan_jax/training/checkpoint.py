@@ -1,5 +1,8 @@
 """Checkpoints of a run directory, and :func:`load_run` for replay / evaluation.
 
+(Warm-starting a new run from another run's checkpoint is a training rule:
+:mod:`popsan_jax.training.warm_start`.)
+
 Layout under ``runs/<name>/checkpoints/``::
 
     step_000000123456/   an Orbax PyTree checkpoint: {"state": TrainingState, "key": rng key}
@@ -33,6 +36,9 @@ from brax.training.agents.ppo import networks as ppo_networks
 
 from popsan_jax.config import RunConfig
 from popsan_jax.errors import CheckpointError, ConfigError
+from popsan_jax.io import write_json
+from popsan_jax.training.iteration import init_training_state
+from popsan_jax.training.setup import build_networks, make_env, make_optimizer
 
 INDEX = "index.json"
 CONFIG = "config.json"
@@ -61,13 +67,7 @@ def read_index(run_dir: str | os.PathLike) -> dict[str, Any]:
 
 
 def _write_index(run_dir: Path, index: dict[str, Any]) -> None:
-    path = checkpoint_dir(run_dir) / INDEX
-    tmp = path.with_name(INDEX + ".tmp")
-    with open(tmp, "w") as f:
-        json.dump(index, f, indent=2)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    write_json(checkpoint_dir(run_dir) / INDEX, index)
 
 
 def save_checkpoint(
@@ -181,9 +181,6 @@ def load_run(
     are merged over the config's own (evaluating under changed env settings; an unknown key
     raises ConfigError). Missing, corrupt or incompatible data raises CheckpointError.
     """
-    from popsan_jax.training import iteration as ppo_update
-    from popsan_jax.training.loop import make_env
-
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise CheckpointError(f"run directory {run_dir} does not exist")
@@ -198,15 +195,15 @@ def load_run(
         environment = make_env(config)  # an unknown key is the caller's ConfigError
     try:
         env = environment if environment is not None else make_env(config)
-        networks = ppo_update.build_networks(config, env.observation_size, env.action_size)
+        networks = build_networks(config, env.observation_size, env.action_size)
     except ConfigError as e:
         raise CheckpointError(f"run {run_dir} has an unusable config: {e}") from e
     except (TypeError, ValueError) as e:
         raise CheckpointError(f"run {run_dir}: config does not build networks: {e}") from e
-    template = ppo_update.init_training_state(
+    template = init_training_state(
         config,
         networks,
-        ppo_update.make_optimizer(config),
+        make_optimizer(config),
         env.observation_size,
         jax.random.PRNGKey(0),
     )
@@ -220,40 +217,4 @@ def load_run(
         networks=networks,
         env=env,
         entry=entry,
-    )
-
-
-def warm_start(state: Any, config: RunConfig, optimizer: Any, environment: Any = None) -> Any:
-    """``state`` (a fresh TrainingState of ``config``) with the policy, critic and observation
-    normaliser of ``config.init_from``'s ``config.init_checkpoint`` and a fresh optimiser.
-
-    The networks must match except PopSAN's ``timesteps`` (its parameters do not depend on
-    ``T``), so a policy trained at one ``T`` can be fine-tuned at another. A mismatch raises
-    ConfigError; a missing or damaged source raises CheckpointError.
-    """
-    which = config.init_checkpoint
-    source = load_run(config.init_from, int(which) if which.isdigit() else which, environment)
-    theirs, ours = source.config, config
-    for name in ("env", "actor", "critic_hidden_sizes"):
-        if getattr(theirs, name) != getattr(ours, name):
-            raise ConfigError(
-                f"cannot start from {config.init_from}: its {name} {getattr(theirs, name)!r} "
-                f"differs from this run's {getattr(ours, name)!r}"
-            )
-    keys = set(theirs.actor_kwargs) | set(ours.actor_kwargs)
-    for name in sorted(keys - {"timesteps"}):
-        if theirs.actor_kwargs.get(name) != ours.actor_kwargs.get(name):
-            raise ConfigError(
-                f"cannot start from {config.init_from}: its actor {name} "
-                f"{theirs.actor_kwargs.get(name)!r} differs from this run's "
-                f"{ours.actor_kwargs.get(name)!r} (only timesteps may differ)"
-            )
-    params = state.params.replace(policy=source.policy_params, value=source.value_params)
-    shapes = [jax.tree.map(jnp.shape, p) for p in (state.params, params)]
-    if shapes[0] != shapes[1]:
-        raise ConfigError(f"cannot start from {config.init_from}: its network shapes differ")
-    return state.replace(
-        params=params,
-        opt_state=optimizer.init(params),
-        normalizer_params=source.normalizer_params,
     )

@@ -21,7 +21,7 @@ from brax.training.agents.ppo import losses as ppo_losses
 from brax.training.agents.ppo import networks as ppo_networks
 
 from popsan_jax.config import RunConfig
-from popsan_jax.training import loss as spike_cost
+from popsan_jax.training import loss
 
 AXIS = "devices"
 
@@ -37,49 +37,6 @@ class TrainingState:
     opt_state: Any
     normalizer_params: running_statistics.RunningStatisticsState
     env_steps: jax.Array
-
-
-def build_networks(
-    config: RunConfig, observation_size: int, action_size: int
-) -> ppo_networks.PPONetworks:
-    """Engineer A's factory with running-statistics normalisation clipped to ``obs_clip``."""
-    from popsan_jax.networks import make_ppo_networks
-
-    preprocess = functools.partial(running_statistics.normalize, max_abs_value=config.obs_clip)
-    return make_ppo_networks(
-        observation_size,
-        action_size,
-        preprocess_observations_fn=preprocess,
-        actor=config.actor,
-        actor_kwargs=dict(config.actor_kwargs),
-        critic_hidden_sizes=tuple(config.critic_hidden_sizes),
-        init_log_std=config.init_log_std,
-    )
-
-
-def make_optimizer(config: RunConfig) -> optax.GradientTransformation:
-    """Adam with separate actor / critic learning rates (the PopSAN paper's 1e-5 / 1e-4 split),
-    optional cosine decay over the whole run, and optional global grad-norm clipping."""
-    total_updates = config.num_iterations * config.num_updates_per_batch * config.num_minibatches
-
-    def lr(value: float) -> optax.ScalarOrSchedule:
-        if config.lr_schedule == "cosine":
-            return optax.cosine_decay_schedule(value, decay_steps=total_updates)
-        return value
-
-    def labels(params: ppo_losses.PPONetworkParams) -> ppo_losses.PPONetworkParams:
-        return ppo_losses.PPONetworkParams(
-            policy=jax.tree.map(lambda _: "actor", params.policy),
-            value=jax.tree.map(lambda _: "critic", params.value),
-        )
-
-    split = optax.multi_transform(
-        {"actor": optax.adam(lr(config.actor_lr)), "critic": optax.adam(lr(config.critic_lr))},
-        labels,
-    )
-    if config.max_grad_norm is None:
-        return split
-    return optax.chain(optax.clip_by_global_norm(config.max_grad_norm), split)
 
 
 def init_training_state(
@@ -143,11 +100,9 @@ def stagger_episodes(
 
     A fresh reset starts all ``E`` envs at step 0 of their episodes, so each of the next ``L /
     unroll_length`` iterations would learn from a single phase of the episode (all reaching,
-    then all grasping, ...). A policy far into training may not survive that: a PopSAN pick run
-    resumed at 12.3 M steps without staggering took KL steps of 0.40 and 0.86 within 5
-    iterations and fell from 42 % to 3-8 % success; staggered, it went on to 44-64 %
-    (docs/results.md, "Resuming a run"). Costs ``(L - 1) * E`` uncounted env steps of
-    ``policy`` (stochastic).
+    then all grasping, ...). A policy far into training may not survive that (docs/design.md,
+    "Staggering on resume"). Costs ``(L - 1) * E`` uncounted env steps of ``policy``
+    (stochastic).
 
     Args:
       env: the training-wrapped (vmapped, auto-reset) env.
@@ -193,7 +148,7 @@ def make_iteration_fn(
     loss and parameters are all finite).
     """
     make_policy = ppo_networks.make_inference_fn(networks)
-    loss_fn = spike_cost.make_loss_fn(config, networks, env.action_size)
+    loss_fn = loss.make_loss_fn(config, networks, env.action_size)
     update = gradients.gradient_update_fn(loss_fn, optimizer, axis_name, has_aux=True)
     minibatches = config.num_minibatches
 

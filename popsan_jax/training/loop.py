@@ -27,28 +27,28 @@ import numpy as np
 from brax.envs.wrappers import training as brax_training
 from brax.training.agents.ppo import networks as ppo_networks
 
-from popsan_jax.analysis.energy import sops_per_inference
 from popsan_jax.config import RunConfig
 from popsan_jax.errors import ConfigError, NonFiniteError
 from popsan_jax.rollout import make_episode_runner
+from popsan_jax.snn.ops import sops_per_inference, spiking_layer_names
 from popsan_jax.training import checkpoint
-from popsan_jax.training import iteration as ppo_update
-from popsan_jax.training import loss as spike_cost
+from popsan_jax.training.iteration import (
+    AXIS,
+    TrainingState,
+    init_training_state,
+    make_iteration_fn,
+    stagger_episodes,
+)
 from popsan_jax.training.run_log import RunLogger, wandb_available
-
-
-def make_env(config: RunConfig) -> Any:
-    """The unwrapped env named by the config (unknown names raise ConfigError)."""
-    import envs
-
-    return envs.get_environment(config.env, **dict(config.env_overrides))
+from popsan_jax.training.setup import build_networks, make_env, make_optimizer, make_spikes_fn
+from popsan_jax.training.warm_start import warm_start
 
 
 @dataclasses.dataclass
 class TrainResult:
     """What :func:`train` hands back: final (un-replicated) state and the last eval record."""
 
-    state: ppo_update.TrainingState
+    state: TrainingState
     key: jax.Array
     last_eval: dict[str, Any] | None
     run_dir: Path
@@ -56,18 +56,18 @@ class TrainResult:
 
 def make_diagnostics_fn(
     config: RunConfig, networks: ppo_networks.PPONetworks, action_size: int
-) -> Callable[[ppo_update.TrainingState, jax.Array], dict[str, jax.Array]]:
+) -> Callable[[TrainingState, jax.Array], dict[str, jax.Array]]:
     """``fn(state, obs [B, O]) -> {entropy, firing_rate/<layer>, sops}`` on a sample of the
     batch (``sops``: synaptic operations per inference, the energy convention's count)."""
-    spikes_fn = spike_cost.make_spikes_fn(config, action_size) if config.actor == "popsan" else None
+    spikes_fn = make_spikes_fn(config, action_size) if config.actor == "popsan" else None
 
-    def diagnostics(state: ppo_update.TrainingState, obs: jax.Array) -> dict[str, jax.Array]:
+    def diagnostics(state: TrainingState, obs: jax.Array) -> dict[str, jax.Array]:
         logits = networks.policy_network.apply(state.normalizer_params, state.params.policy, obs)
         entropy = networks.parametric_action_distribution.entropy(logits, jax.random.PRNGKey(0))
         out = {"entropy": jnp.mean(entropy)}
         if spikes_fn is not None:
             spikes = spikes_fn(state.params.policy, state.normalizer_params, obs)
-            names = ["encoder"] + [f"hidden_{k}" for k in range(len(spikes) - 2)] + ["output"]
+            names = spiking_layer_names(len(spikes) - 2)
             out.update(
                 {f"firing_rate/{n}": jnp.mean(s) for n, s in zip(names, spikes, strict=True)}
             )
@@ -100,29 +100,29 @@ def build_trainer(config: RunConfig, environment: Any = None) -> Trainer:
     env = environment if environment is not None else make_env(config)
     episode_length = config.episode_length or int(env.config.episode_length)
     wrapped = brax_training.wrap(env, episode_length=episode_length, action_repeat=1)
-    networks = ppo_update.build_networks(config, env.observation_size, env.action_size)
-    optimizer = ppo_update.make_optimizer(config)
+    networks = build_networks(config, env.observation_size, env.action_size)
+    optimizer = make_optimizer(config)
     iteration = jax.pmap(
-        ppo_update.make_iteration_fn(
+        make_iteration_fn(
             config,
             wrapped,
             networks,
             optimizer,
             make_diagnostics_fn(config, networks, env.action_size),
         ),
-        axis_name=ppo_update.AXIS,
+        axis_name=AXIS,
         donate_argnums=(0, 1),
     )
     return Trainer(config, env, wrapped, networks, optimizer, iteration, episode_length, devices)
 
 
 def _stagger(t: Trainer, make_policy: Callable[..., Any]) -> Callable[..., Any]:
-    """pmapped ``(state [D], env_state [D], keys [D]) -> env_state``: ppo_update.stagger_episodes
+    """pmapped ``(state [D], env_state [D], keys [D]) -> env_state``: stagger_episodes
     with the run's stochastic policy."""
 
-    def stagger(state: ppo_update.TrainingState, env_state: Any, key: jax.Array) -> Any:
+    def stagger(state: TrainingState, env_state: Any, key: jax.Array) -> Any:
         policy = make_policy((state.normalizer_params, state.params.policy))
-        return ppo_update.stagger_episodes(t.wrapped, env_state, policy, key, t.episode_length)
+        return stagger_episodes(t.wrapped, env_state, policy, key, t.episode_length)
 
     return jax.pmap(stagger)
 
@@ -156,16 +156,14 @@ def train(
     env, networks, devices = t.env, t.networks, t.devices
     key = jax.random.PRNGKey(config.seed)
     key, key_init = jax.random.split(key)
-    state = ppo_update.init_training_state(
-        config, networks, t.optimizer, env.observation_size, key_init
-    )
+    state = init_training_state(config, networks, t.optimizer, env.observation_size, key_init)
     eval_index = 0
     if resume:
         state, key, entry = checkpoint.restore_checkpoint(run_dir, state, "last")
         eval_index = entry["eval_index"]
     else:
         if config.init_from:
-            state = checkpoint.warm_start(state, config, t.optimizer, environment)
+            state = warm_start(state, config, t.optimizer, environment)
         run_dir.mkdir(parents=True, exist_ok=True)
         config.to_json(run_dir / checkpoint.CONFIG)
     start_steps = int(state.env_steps)
@@ -180,7 +178,7 @@ def train(
         episode_length=episode_length,
     )
 
-    def evaluate(state: ppo_update.TrainingState, key: jax.Array) -> dict[str, float]:
+    def evaluate(state: TrainingState, key: jax.Array) -> dict[str, float]:
         """Deterministic-policy episodes on the unwrapped env (popsan_jax.rollout)."""
         t0 = time.monotonic()
         batch = jax.device_get(runner((state.normalizer_params, state.params.policy), key))

@@ -1,11 +1,9 @@
-"""PopSAN spikes measured inside training, and the optional synaptic-operation penalty in the loss.
+"""The training loss: Brax's PPO loss plus the optional synaptic-operation (spike) penalty.
 
 Why a penalty: the energy target compares SNN and ANN at the smallest ``T`` that still succeeds,
-and PopSAN policies trained by PPO alone fire more than that target allows (pick, 30 November:
-80-82 % saving at T = 3, docs/results.md "Energy"). Training at T = 2 from scratch or fine-tuning
-at T = 2 raised the firing rates instead of lowering them. The penalty charges the quantity the
-energy convention counts, synaptic operations per inference (:func:`energy.sops_per_inference`),
-above a budget::
+and PopSAN policies trained by PPO alone fire more than that target allows (docs/design.md,
+"The spike penalty"). The penalty charges the quantity the energy convention counts, synaptic
+operations per inference (:func:`popsan_jax.snn.ops.sops_per_inference`), above a budget::
 
     loss = compute_ppo_loss(...) + sop_cost * max(0, SOPs - sop_budget) / 1000
 
@@ -22,31 +20,12 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from brax.training.acme import running_statistics
 from brax.training.agents.ppo import losses as ppo_losses
 from brax.training.agents.ppo import networks as ppo_networks
 
-from popsan_jax.analysis.energy import sops_per_inference
 from popsan_jax.config import RunConfig
-
-SpikesFn = Callable[[Any, Any, jax.Array], tuple[jax.Array, ...]]
-
-
-def make_spikes_fn(config: RunConfig, action_size: int) -> SpikesFn:
-    """``spikes(policy_params, normalizer_params, obs [B, O]) -> ([T, B, N_l] per layer)``.
-
-    The observation goes through the same clipped normalisation as the policy's own input.
-    Only for the PopSAN actor.
-    """
-    from popsan_jax.networks import actor_variables, make_actor
-
-    actor = make_actor(config.actor, dict(config.actor_kwargs), action_size)
-
-    def spikes(policy_params: Any, normalizer_params: Any, obs: jax.Array) -> tuple[jax.Array, ...]:
-        normed = running_statistics.normalize(obs, normalizer_params, max_abs_value=config.obs_clip)
-        return actor.apply(actor_variables(policy_params), normed, return_spikes=True)[1]
-
-    return spikes
+from popsan_jax.snn.ops import sops_per_inference
+from popsan_jax.training.setup import make_spikes_fn
 
 
 def sop_penalty(config: RunConfig, sops: jax.Array) -> jax.Array:

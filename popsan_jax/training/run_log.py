@@ -16,7 +16,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+from tensorboardX import SummaryWriter
+from tqdm import tqdm
+
 from popsan_jax.errors import ConfigError
+from popsan_jax.io import read_jsonl, write_jsonl
+
+METRICS = "metrics.jsonl"
 
 
 def wandb_available() -> bool:
@@ -31,10 +37,7 @@ def _drop_records_after(run_dir: Path, env_steps: int) -> None:
     too (``read_metrics`` skips it). Rewritten atomically.
     """
     kept = [r for r in read_metrics(run_dir) if r["env_steps"] <= env_steps]
-    path = run_dir / "metrics.jsonl"
-    tmp = path.with_suffix(".jsonl.tmp")
-    tmp.write_text("".join(json.dumps(r) + "\n" for r in kept))
-    os.replace(tmp, path)
+    write_jsonl(run_dir / METRICS, kept)
 
 
 class RunLogger:
@@ -53,9 +56,7 @@ class RunLogger:
         self.start = time.monotonic()
         if initial_steps > 0:
             _drop_records_after(self.run_dir, initial_steps)
-        self._jsonl = open(self.run_dir / "metrics.jsonl", "a", buffering=1)
-        from tensorboardX import SummaryWriter
-
+        self._jsonl = open(self.run_dir / METRICS, "a", buffering=1)
         # purge_step: TensorBoard hides the points an earlier, killed process logged past the
         # checkpoint, as _drop_records_after does for the JSONL.
         purge = initial_steps + 1 if initial_steps > 0 else None
@@ -64,7 +65,7 @@ class RunLogger:
         if use_wandb:
             if not wandb_available():
                 raise ConfigError("--wandb needs the wandb package: pip install wandb")
-            import wandb
+            import wandb  # optional dependency, present only when asked for
 
             mode = "offline" if not os.environ.get("WANDB_API_KEY") else None
             self._wandb = wandb.init(
@@ -77,8 +78,6 @@ class RunLogger:
             )
         self._bar = None
         if progress:
-            from tqdm import tqdm
-
             self._bar = tqdm(
                 total=total_env_steps,
                 initial=min(initial_steps, total_env_steps),
@@ -150,16 +149,9 @@ def _plain(value: Any) -> Any:
 
 
 def read_metrics(run_dir: str | os.PathLike, kind: str | None = None) -> list[dict[str, Any]]:
-    """All records of ``metrics.jsonl`` (optionally of one kind); a torn last line is skipped."""
-    records = []
-    path = Path(run_dir) / "metrics.jsonl"
+    """All records of ``metrics.jsonl`` (optionally of one kind; none when there is no file),
+    read under :func:`popsan_jax.io.read_jsonl`'s torn-line rule."""
+    path = Path(run_dir) / METRICS
     if not path.exists():
-        return records
-    for line in path.read_text().splitlines():
-        try:
-            record = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if kind is None or record.get("kind") == kind:
-            records.append(record)
-    return records
+        return []
+    return [r for r in read_jsonl(path) if kind is None or r.get("kind") == kind]

@@ -1,11 +1,13 @@
 """Offscreen video: frames written for a moving body; a clear error when no GL backend works."""
 
 import imageio
+import mujoco
 import numpy as np
 import pytest
+from _gl import gl_available
 from _toy_env import PointPick
 
-from popsan_jax.analysis.video import GL_BACKENDS, gl_available, render_video
+from popsan_jax.analysis.video import GL_BACKENDS, render_video
 from popsan_jax.errors import UserError
 
 HAVE_GL = any(gl_available(b) for b in GL_BACKENDS)
@@ -39,8 +41,6 @@ def test_no_gl_backend_is_one_clear_error(tmp_path, monkeypatch):
 
 @pytest.mark.skipif(not HAVE_GL, reason="neither EGL nor OSMesa works (apt-get install libosmesa6)")
 def test_video_places_mocap_bodies(tmp_path):
-    import mujoco
-
     # No joints at all: only the mocap target can move, so any change between frames is its doing.
     model = mujoco.MjModel.from_xml_string(
         """<mujoco><worldbody><light pos="0 0 3"/>

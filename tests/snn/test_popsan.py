@@ -4,10 +4,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _reference import lif_layer, regular_spike_train
 
 from popsan_jax import PopSAN
-from popsan_jax.snn.encoder import regular_spike_train
-from popsan_jax.snn.lif import lif_layer
 
 OBS, ACT, B = 6, 3, 16
 KW = dict(action_size=ACT, hidden_sizes=(32, 24), encoder_pop_dim=5, decoder_pop_dim=4, timesteps=5)

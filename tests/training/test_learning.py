@@ -9,8 +9,9 @@ issue 4) with a margin for seed noise.
 
 from __future__ import annotations
 
-import importlib.util
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -42,21 +43,15 @@ CASES = {
 }
 
 
-def _train_cli():
-    spec = importlib.util.spec_from_file_location("train_cli", ROOT / "train.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("actor", sorted(CASES))
 def test_reach_success_far_above_untrained(actor, tmp_path):
     lr, schedule, total, threshold = CASES[actor]
     argv = [*REACH_FLAGS, "--actor", actor, "--actor-lr", str(lr), "--lr-schedule", schedule]
     argv += ["--total-env-steps", str(total)]
-    code = _train_cli().main([*argv, "--runs-dir", str(tmp_path), "--name", actor])
-    assert code == 0
+    cmd = [sys.executable, "train.py", *argv, "--runs-dir", str(tmp_path), "--name", actor]
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=3000)
+    assert proc.returncode == 0, proc.stderr[-2000:]
     run_dir = tmp_path / actor
     config = json.loads((run_dir / "config.json").read_text())
     assert config["actor"] == actor and config["env_overrides"]["episode_length"] == 50

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import struct
 import subprocess
@@ -23,10 +24,10 @@ from tensorboardX.proto import event_pb2
 
 from popsan_jax.errors import NonFiniteError
 from popsan_jax.networks import actor_variables, make_actor
-from popsan_jax.training import checkpoint
-from popsan_jax.training import iteration as ppo_update
-from popsan_jax.training import loop as ppo
+from popsan_jax.training import checkpoint, iteration
+from popsan_jax.training.loop import train
 from popsan_jax.training.run_log import read_metrics
+from popsan_jax.training.setup import build_networks, make_optimizer
 
 ROOT = Path(__file__).resolve().parents[2]
 STEPS = 640  # env steps per iteration of tiny_config()
@@ -46,7 +47,7 @@ def two_iteration_run(tmp_path_factory):
     """2 iterations, an eval + checkpoint after each (num_evals=2)."""
     run_dir = tmp_path_factory.mktemp("runs") / "tiny"
     config = tiny_config(total_env_steps=2 * STEPS)
-    result = ppo.train(config, run_dir, environment=PointPick(), progress=False)
+    result = train(config, run_dir, environment=PointPick(), progress=False)
     return config, run_dir, result
 
 
@@ -110,11 +111,9 @@ def test_load_run_rebuilds_the_saved_policy(two_iteration_run):
 
 def test_resume_restores_state_and_continues_step_count(two_iteration_run, tmp_path):
     config, run_dir, result = two_iteration_run
-    import shutil
-
     resumed_dir = tmp_path / "resumed"
     shutil.copytree(run_dir, resumed_dir)
-    template = ppo_update.init_training_state(
+    template = iteration.init_training_state(
         config, *_nets_and_opt(config), PointPick().observation_size, jax.random.PRNGKey(9)
     )
     restored, key, _ = checkpoint.restore_checkpoint(resumed_dir, template, "last")
@@ -130,7 +129,7 @@ def test_resume_restores_state_and_continues_step_count(two_iteration_run, tmp_p
     with SummaryWriter(str(resumed_dir / "tb"), filename_suffix=".killed") as tb:
         tb.add_scalar("train/entropy", 123.0, 3 * STEPS)
     more = config.replace(total_env_steps=4 * STEPS)
-    out = ppo.train(more, resumed_dir, resume=True, environment=PointPick(), progress=False)
+    out = train(more, resumed_dir, resume=True, environment=PointPick(), progress=False)
     records = read_metrics(resumed_dir, "train")
     assert [r["env_steps"] for r in records] == [STEPS, 2 * STEPS, 3 * STEPS, 4 * STEPS]
     assert not any(r.get("stale") for r in records)
@@ -152,7 +151,7 @@ def test_stagger_spreads_episode_phases():
     def policy(obs, key):
         return jax.random.uniform(key, (obs.shape[0], 3), minval=-1.0, maxval=1.0), {}
 
-    out = jax.jit(lambda s, k: ppo_update.stagger_episodes(wrapped, s, policy, k, length))(
+    out = jax.jit(lambda s, k: iteration.stagger_episodes(wrapped, s, policy, k, length))(
         start, jax.random.PRNGKey(1)
     )
     steps = np.asarray(out.info["steps"]).astype(int)
@@ -188,8 +187,8 @@ def _tensorboard_points(tb_dir, tag: str) -> list[tuple[int, float]]:
 def _nets_and_opt(config):
     env = PointPick()
     return (
-        ppo_update.build_networks(config, env.observation_size, env.action_size),
-        ppo_update.make_optimizer(config),
+        build_networks(config, env.observation_size, env.action_size),
+        make_optimizer(config),
     )
 
 
@@ -203,13 +202,11 @@ class NaNReward(PointPick):
 
 def test_nan_stops_with_step_and_keeps_last_good_checkpoint(two_iteration_run, tmp_path):
     config, run_dir, result = two_iteration_run
-    import shutil
-
     nan_dir = tmp_path / "nan"
     shutil.copytree(run_dir, nan_dir)
     more = config.replace(total_env_steps=4 * STEPS)
     with pytest.raises(NonFiniteError, match=f"at env step {3 * STEPS}"):
-        ppo.train(more, nan_dir, resume=True, environment=NaNReward(), progress=False)
+        train(more, nan_dir, resume=True, environment=NaNReward(), progress=False)
     assert checkpoint.read_index(nan_dir)["last"] == 2 * STEPS
     loaded = checkpoint.load_run(nan_dir, environment=PointPick())
     assert _equal_trees(loaded.policy_params, result.state.params.policy)
@@ -223,10 +220,10 @@ enable_compilation_cache()
 from _toy_env import PointPick, tiny_config
 from tensorboardX import SummaryWriter
 from tensorboardX.proto import event_pb2
-from popsan_jax.training import loop as ppo
+from popsan_jax.training.loop import train
 config = tiny_config(num_envs={num_envs}, batch_size={num_envs}, total_env_steps={total},
                      num_evals={evals})
-ppo.train(config, {run_dir!r}, environment=PointPick(), progress=False,
+train(config, {run_dir!r}, environment=PointPick(), progress=False,
           on_iteration=lambda s, m: print("step", s, flush=True))
 print("finished", flush=True)
 """
@@ -266,7 +263,7 @@ def test_sigkill_mid_run_leaves_a_loadable_last_checkpoint(tmp_path):
     loaded = checkpoint.load_run(run_dir, environment=PointPick())
     last = checkpoint.read_index(run_dir)["last"]
     assert loaded.step == last >= 3 * STEPS
-    out = ppo.train(
+    out = train(
         tiny_config(total_env_steps=last + STEPS, num_evals=200),
         run_dir,
         resume=True,
@@ -289,12 +286,10 @@ def test_two_devices_shard_envs(tmp_path):
 
 
 def test_auto_reset_start_states_are_redrawn_each_iteration():
-    from brax.envs.wrappers import training as brax_training
-
     wrapped = brax_training.wrap(PointPick(episode_length=3), episode_length=3, action_repeat=1)
     state = wrapped.reset(jax.random.split(jax.random.PRNGKey(0), 8))
     before = np.asarray(state.info["first_obs"])
-    refreshed = ppo_update.refresh_reset_states(wrapped, state, jax.random.PRNGKey(1))
+    refreshed = iteration.refresh_reset_states(wrapped, state, jax.random.PRNGKey(1))
     after = np.asarray(refreshed.info["first_obs"])
     # The new start states are exactly fresh resets with the split key, all different from before.
     expected = wrapped.reset(jax.random.split(jax.random.PRNGKey(1), 8)).obs
