@@ -1,14 +1,14 @@
 #!/usr/bin/env bash
-# The pick study of docs/results.md (issue 6): PopSAN vs MLP on franka_pick, 3 seeds each, then
+# The pick study of docs/results.md (issue 6; record in docs/notebook/): PopSAN vs MLP on franka_pick, 3 seeds each, then
 # the evaluations of evaluate_study.sh (energy per T on every seed, latency, curves).
 #
-# Usage: bash docs/results/pick_study.sh [RUNS_DIR] [train.py flags...]
+# Usage: bash docs/results/pick_seeds/study.sh [RUNS_DIR] [train.py flags...]
 #   default flags: --preset paper (512 envs, 40 M steps per run, the settings of the seed-0
-#   pick runs in docs/results.md). On this 2-core CPU a run takes 1.5-3 h alone (a run stopped
+#   pick runs in docs/notebook/). On this 2-core CPU a run takes 1.5-3 h alone (a run stopped
 #   with Ctrl-C resumes where it stopped when this script is run again).
 # Re-running it resumes every run from its last checkpoint (a finished one stops after compiling).
 set -euo pipefail
-cd "$(dirname "$0")/../.."
+cd "$(dirname "$0")/../../.."
 RUNS=${1:-runs/pick_study}
 shift || true
 FLAGS=("$@")

@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
-# The reach study of docs/results.md: PopSAN vs MLP on franka_reach, 3 seeds each, then the
+# The reach study of docs/results.md (record: docs/notebook/2026-11-pick-and-reach.md): PopSAN vs MLP on franka_reach, 3 seeds each, then the
 # evaluations of evaluate_study.sh.
-# Usage: bash docs/results/reach_study.sh [RUNS_DIR] [HIDDEN]
+# Usage: bash docs/results/reach/study.sh [RUNS_DIR] [HIDDEN]
 #   HIDDEN: both actors' hidden sizes, default 256,256 (the paper's PopSAN); the whole study took
-#   25 minutes on the 2-core CPU on 2026-11-25 (docs/results.md). 128,128 is the smaller variant.
+#   25 minutes on the 2-core CPU on 2026-11-25 (docs/notebook/). 128,128 is the smaller variant.
 set -euo pipefail
-cd "$(dirname "$0")/../.."
+cd "$(dirname "$0")/../../.."
 RUNS=${1:-runs/reach_study}
 HIDDEN=${2:-256,256}
 PY=.venv/bin/python

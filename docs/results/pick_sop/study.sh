@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The energy step of the pick study (docs/results.md, "Fine-tuning at T = 2 under a spike
+# The energy step of the pick study (docs/notebook/2026-11-pick-and-reach.md, "Fine-tuning at T = 2 under a spike
 # budget"): each seed's T = 5 PopSAN (best checkpoint) trained on at T = 2 for 4 M env steps with
 # a synaptic-operation penalty above 30 k SOPs per inference and actor lr 1e-4; then every kept
 # checkpoint is evaluated over the same 1000 episodes at T = 2 (eval.py --all-checkpoints; the
@@ -7,12 +7,12 @@
 # figures), the best of those gets the energy table
 # (T = 1, 2, 3, against its seed's ANN) and a re-check on 1000 other episodes (--seed 1).
 #
-# Usage: bash docs/results/pick_energy.sh [STUDY_RUNS] [OUT_RUNS]
-#   STUDY_RUNS holds popsan-s{0,1,2} and mlp-s{0,1,2} (pick_study.sh; default runs/pick_study),
+# Usage: bash docs/results/pick_sop/study.sh [STUDY_RUNS] [OUT_RUNS]
+#   STUDY_RUNS holds popsan-s{0,1,2} and mlp-s{0,1,2} (docs/results/pick_seeds/study.sh; default runs/pick_study),
 #   OUT_RUNS gets t2-s{0,1,2} (default runs/pick_sop). About 30 min per seed on this 2-core CPU;
 #   a run stopped with Ctrl-C resumes when the script is run again.
 set -euo pipefail
-cd "$(dirname "$0")/../.."
+cd "$(dirname "$0")/../../.."
 STUDY=${1:-runs/pick_study}
 RUNS=${2:-runs/pick_sop}
 PY=.venv/bin/python

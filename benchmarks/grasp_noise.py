@@ -1,7 +1,7 @@
 """How much exploration noise the franka_pick grasp tolerates, per action scale (issue 6).
 
-    .venv/bin/python docs/results/grasp_noise.py 7.5       # PixMC's scale
-    .venv/bin/python docs/results/grasp_noise.py 2.0       # franka_pick's default
+    .venv/bin/python benchmarks/grasp_noise.py 7.5       # PixMC's scale
+    .venv/bin/python benchmarks/grasp_noise.py 2.0       # franka_pick's default
 
 The scripted grasp-and-lift controller (``envs/scripted.py``) runs 128 randomised 200-step
 episodes with N(0, sigma^2) added to each of its 9 actions before the env clips them, as a
