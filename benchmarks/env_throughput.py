@@ -23,6 +23,9 @@ import jax.numpy as jnp
 from mujoco import mjx
 from train_throughput import cpu_name, matmul_gflops
 
+import envs
+from popsan_jax.jax_setup import enable_compilation_cache
+
 
 def _timed(fn, *args) -> tuple[float, object]:
     t0 = time.perf_counter()
@@ -85,11 +88,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     if args.cache:
-        from popsan_jax.jax_setup import enable_compilation_cache
-
         enable_compilation_cache()
-
-    import envs
 
     variants = {"current": envs.get_environment(args.env)}
     if not args.no_legacy:

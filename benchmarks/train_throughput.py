@@ -12,7 +12,7 @@ It also prints the ceiling that the same maths allows: the ratio PopSAN would re
 actors' dense FLOPs ran at the fp32 matmul rate measured in this process and everything else
 (env, critic, PPO bookkeeping) cost what the MLP run shows. FLOPs per env step = one rollout
 forward + ``epochs`` x (forward + backward) as executed: PopSAN's first-layer input gradient is one
-matmul on the T-summed cotangent (see popsan_jax/encoder.py); the MLP needs no input gradient.
+matmul on the T-summed cotangent (see popsan_jax/snn/encoder.py); the MLP needs no input gradient.
 
 ``popsan+sop`` is PopSAN with the synaptic-operation penalty in the loss (``--sop-cost``, budget
 0 so it is active on every minibatch); its line gives its cost relative to plain PopSAN.
@@ -28,6 +28,11 @@ import time
 import jax
 import jax.numpy as jnp
 from actor_throughput import popsan_dense_flops
+
+from popsan_jax.config import resolve_config
+from popsan_jax.jax_setup import enable_compilation_cache
+from popsan_jax.training.iteration import init_training_state
+from popsan_jax.training.loop import build_trainer
 
 
 def cpu_name() -> str:
@@ -70,9 +75,6 @@ def matmul_gflops(n: int = 2048, repeats: int = 10) -> float:
 def measure(spec: str, args: argparse.Namespace) -> tuple[float, float]:
     """(env steps/s, actor dense FLOPs per env step) for one actor spec (``mlp``, ``popsan``,
     ``popsan+sop``)."""
-    from popsan_jax import ppo, ppo_update
-    from popsan_jax.config import resolve_config
-
     actor, _, variant = spec.partition("+")
     if variant not in ("", "sop") or (variant and actor != "popsan"):
         raise SystemExit(f"error: unknown actor spec {spec!r} (mlp, popsan, popsan+sop)")
@@ -92,11 +94,9 @@ def measure(spec: str, args: argparse.Namespace) -> tuple[float, float]:
         ),
         {"timesteps": args.timesteps} if actor == "popsan" else {},
     )
-    t = ppo.build_trainer(config)
+    t = build_trainer(config)
     key = jax.random.PRNGKey(0)
-    state = ppo_update.init_training_state(
-        config, t.networks, t.optimizer, t.env.observation_size, key
-    )
+    state = init_training_state(config, t.networks, t.optimizer, t.env.observation_size, key)
     keys = jax.random.split(key, config.num_envs).reshape(len(t.devices), -1, 2)
     env_state = jax.pmap(t.wrapped.reset)(keys)
     state = jax.device_put_replicated(state, t.devices)
@@ -128,8 +128,6 @@ def main() -> None:
     p.add_argument("--timesteps", type=int, default=5, help="PopSAN's T")
     p.add_argument("--sop-cost", type=float, default=0.01, help="penalty weight of popsan+sop")
     args = p.parse_args()
-
-    from popsan_jax.jax_setup import enable_compilation_cache
 
     enable_compilation_cache()
     print(

@@ -10,9 +10,9 @@ from typing import Any
 
 from brax.envs.base import Env
 
+from envs.errors import EnvConfigError
 from envs.franka_pick import FrankaPick
 from envs.franka_reach import FrankaReach
-from popsan_jax.errors import ConfigError
 
 _ENVS = {"franka_pick": FrankaPick, "franka_reach": FrankaReach}
 
@@ -25,10 +25,10 @@ def list_environments() -> list[str]:
 def get_environment(name: str, **config_overrides: Any) -> Env:
     """Build env ``name``; ``config_overrides`` replace keys of its ``default_config()``.
 
-    Unknown names or override keys raise :class:`popsan_jax.errors.ConfigError`.
+    Unknown names or override keys raise :class:`envs.errors.EnvConfigError`.
     """
     if name not in _ENVS:
-        raise ConfigError(f"unknown env {name!r}; available: {', '.join(list_environments())}")
+        raise EnvConfigError(f"unknown env {name!r}; available: {', '.join(list_environments())}")
     return _ENVS[name](**config_overrides)
 
 
@@ -36,28 +36,21 @@ def legacy_overrides(name: str, revision: int) -> dict[str, Any]:
     """Config overrides that make env ``name`` behave as its ``revision`` did (a run config saved
     by an earlier version names the revision it was trained with); ``{}`` for the current one."""
     if name not in _ENVS:
-        raise ConfigError(f"unknown env {name!r}; available: {', '.join(list_environments())}")
+        raise EnvConfigError(f"unknown env {name!r}; available: {', '.join(list_environments())}")
     env_cls = _ENVS[name]
     current = getattr(env_cls, "revision", 1)
     if not 1 <= revision <= current:
-        raise ConfigError(f"env {name!r} has revisions 1..{current}, not {revision}")
+        raise EnvConfigError(f"env {name!r} has revisions 1..{current}, not {revision}")
     merged: dict[str, Any] = {}
     for r in range(current - 1, revision - 1, -1):  # newest first, so older values win
         merged.update(getattr(env_cls, "legacy_overrides", {}).get(r, {}))
     return merged
 
 
-def default_config(name: str):
-    """The default config (``ml_collections.ConfigDict``) of env ``name``."""
-    if name not in _ENVS:
-        raise ConfigError(f"unknown env {name!r}; available: {', '.join(list_environments())}")
-    return _ENVS[name].default_config()
-
-
 __all__ = [
+    "EnvConfigError",
     "FrankaPick",
     "FrankaReach",
-    "default_config",
     "get_environment",
     "legacy_overrides",
     "list_environments",

@@ -31,7 +31,7 @@ import numpy as np
 from brax.envs.base import Env
 from mujoco import mjx
 
-from popsan_jax.errors import ConfigError
+from envs.errors import EnvConfigError
 
 ASSETS_DIR = Path(__file__).resolve().parent / "assets"
 
@@ -71,16 +71,16 @@ def apply_overrides(
     config = ml_collections.ConfigDict(config.to_dict())
     for key, value in overrides.items():
         if key not in config:
-            raise ConfigError(
+            raise EnvConfigError(
                 f"unknown config key {key!r} for env {env_name!r}; known: {sorted(config.keys())}"
             )
         current = config[key]
         if isinstance(current, ml_collections.ConfigDict):
             if not isinstance(value, Mapping):
-                raise ConfigError(f"config key {key!r} of env {env_name!r} takes a mapping")
+                raise EnvConfigError(f"config key {key!r} of env {env_name!r} takes a mapping")
             for sub, sub_value in value.items():
                 if sub not in current:
-                    raise ConfigError(
+                    raise EnvConfigError(
                         f"unknown key {key}.{sub!r} for env {env_name!r}; "
                         f"known: {sorted(current.keys())}"
                     )
@@ -89,16 +89,16 @@ def apply_overrides(
             try:
                 config[key] = type(current)(value)
             except (TypeError, ValueError) as exc:
-                raise ConfigError(f"bad value {value!r} for {key!r} of {env_name!r}") from exc
+                raise EnvConfigError(f"bad value {value!r} for {key!r} of {env_name!r}") from exc
     n_sub = config.ctrl_dt / config.sim_dt
     if config.sim_dt <= 0 or abs(n_sub - round(n_sub)) > 1e-6 or round(n_sub) < 1:
-        raise ConfigError(
+        raise EnvConfigError(
             f"ctrl_dt ({config.ctrl_dt}) must be a positive multiple of sim_dt ({config.sim_dt})"
         )
     if not config.action_scale > 0:
-        raise ConfigError(f"action_scale must be > 0, got {config.action_scale}")
+        raise EnvConfigError(f"action_scale must be > 0, got {config.action_scale}")
     if config.episode_length < 1:
-        raise ConfigError(f"episode_length must be >= 1, got {config.episode_length}")
+        raise EnvConfigError(f"episode_length must be >= 1, got {config.episode_length}")
     config.lock()
     return config
 

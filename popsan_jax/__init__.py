@@ -11,8 +11,8 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 _EXPORTS = {
-    "PopSAN": "popsan_jax.actor",
-    "LIFParams": "popsan_jax.lif",
+    "PopSAN": "popsan_jax.snn.popsan",
+    "LIFParams": "popsan_jax.snn.lif",
     "Critic": "popsan_jax.networks",
     "MLPActor": "popsan_jax.networks",
     "actor_variables": "popsan_jax.networks",
@@ -31,8 +31,6 @@ __all__ = [
 ]
 
 if TYPE_CHECKING:
-    from popsan_jax.actor import PopSAN
-    from popsan_jax.lif import LIFParams
     from popsan_jax.networks import (
         Critic,
         MLPActor,
@@ -40,6 +38,8 @@ if TYPE_CHECKING:
         make_actor,
         make_ppo_networks,
     )
+    from popsan_jax.snn.lif import LIFParams
+    from popsan_jax.snn.popsan import PopSAN
 
 
 def __getattr__(name: str) -> Any:

@@ -1,8 +1,8 @@
 """The run configuration: one frozen dataclass, presets, derived sizes and up-front checks.
 
 A :class:`RunConfig` fully describes a training run; it is saved as ``config.json`` in the run
-directory and is all that :func:`popsan_jax.checkpoint.load_run` needs to rebuild the env and the
-networks. No CLI parsing here (train.py maps flags onto :func:`resolve_config`).
+directory and is all that :func:`popsan_jax.training.checkpoint.load_run` needs to rebuild the
+env and the networks. No CLI parsing here (train.py maps flags onto :func:`resolve_config`).
 
 Batch vocabulary (Brax's): each training iteration collects ``batch_size * num_minibatches``
 sequences of ``unroll_length`` steps from ``num_envs`` parallel envs, i.e.
@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from popsan_jax.errors import ConfigError
+from popsan_jax.io import write_json
 
 ACTORS = ("popsan", "mlp")
 CURRENT_ENV_REVISION = 2  # franka_pick/franka_reach revision 2: the grasp that holds
@@ -30,6 +31,12 @@ POPSAN_DEFAULTS: dict[str, Any] = dict(
     hidden_sizes=(256, 256), encoder_pop_dim=10, decoder_pop_dim=10, timesteps=5
 )
 MLP_DEFAULTS: dict[str, Any] = dict(hidden_sizes=(256, 256))
+FLAG_HELP = "help"  # the dataclass field metadata key that makes a RunConfig field a flag
+
+
+def _flag(default: Any, help_text: str) -> Any:
+    """A RunConfig field that train.py exposes as ``--<name>`` with this help."""
+    return dataclasses.field(default=default, metadata={FLAG_HELP: help_text})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,52 +45,62 @@ class RunConfig:
 
     ``actor_kwargs`` are passed to the actor module (PopSAN: hidden_sizes, encoder_pop_dim,
     decoder_pop_dim, timesteps; MLP: hidden_sizes). ``episode_length`` None means the env's own.
+    Fields declared with ``_flag`` are train.py's flags (``popsan_jax.cli`` derives them: name,
+    type and help from here).
     """
 
-    env: str = "franka_pick"
+    env: str = _flag("franka_pick", "task name: franka_pick | franka_reach")
     env_overrides: dict[str, Any] = dataclasses.field(default_factory=dict)
     # The env revision the run was made with (envs.<Env>.revision). A config.json without it
     # predates revisions and is revision 1; its env is rebuilt with envs.legacy_overrides.
     env_revision: int = CURRENT_ENV_REVISION
-    actor: str = "popsan"
+    actor: str = _flag("popsan", "policy network: popsan | mlp")
     actor_kwargs: dict[str, Any] = dataclasses.field(default_factory=lambda: dict(POPSAN_DEFAULTS))
-    critic_hidden_sizes: tuple[int, ...] = (256, 256, 256)
-    init_log_std: float = -0.5
-    obs_clip: float = 3.0
-    seed: int = 0
+    critic_hidden_sizes: tuple[int, ...] = _flag(
+        (256, 256, 256), "critic hidden sizes, e.g. 256,256,256"
+    )
+    init_log_std: float = _flag(-0.5, "initial exploration log-std")
+    obs_clip: float = _flag(3.0, "clip of the normalised observations")
+    seed: int = _flag(0, "random seed")
     # Sizes.
-    num_envs: int = 256
-    total_env_steps: int = 3_000_000
-    episode_length: int | None = None
-    unroll_length: int = 10
-    batch_size: int = 256
-    num_minibatches: int = 8
-    num_updates_per_batch: int = 4
+    num_envs: int = _flag(256, "parallel training envs")
+    total_env_steps: int = _flag(3_000_000, "training env steps")
+    episode_length: int | None = _flag(None, "episode length in control steps (default: the env's)")
+    unroll_length: int = _flag(10, "steps per unroll")
+    batch_size: int = _flag(256, "sequences per minibatch")
+    num_minibatches: int = _flag(8, "minibatches per epoch")
+    num_updates_per_batch: int = _flag(4, "epochs over each batch")
     # Optimiser.
-    actor_lr: float = 3e-4
-    critic_lr: float = 1e-3
-    lr_schedule: str = "constant"
-    max_grad_norm: float | None = 1.0
+    actor_lr: float = _flag(3e-4, "actor learning rate")
+    critic_lr: float = _flag(1e-3, "critic learning rate")
+    lr_schedule: str = _flag("constant", "constant | cosine")
+    max_grad_norm: float | None = _flag(1.0, "global gradient-norm clip")
     # PPO loss.
-    entropy_cost: float = 1e-3
-    discounting: float = 0.97
-    gae_lambda: float = 0.95
-    clipping_epsilon: float = 0.2
-    reward_scaling: float = 1.0
+    entropy_cost: float = _flag(1e-3, "entropy bonus coefficient")
+    discounting: float = _flag(0.97, "discount gamma")
+    gae_lambda: float = _flag(0.95, "GAE lambda")
+    clipping_epsilon: float = _flag(0.2, "PPO clip")
+    reward_scaling: float = _flag(1.0, "reward multiplier")
     normalize_advantage: bool = True
     vf_coefficient: float = 0.5
-    # Synaptic-operation penalty (PopSAN only, popsan_jax/spike_cost.py): the loss gains
+    # Synaptic-operation penalty (PopSAN only, popsan_jax/training/loss.py): the loss gains
     # sop_cost per 1000 SOPs per inference above sop_budget. 0 = PPO's loss alone.
-    sop_cost: float = 0.0
-    sop_budget: float = 0.0
+    sop_cost: float = _flag(
+        0.0, "PopSAN loss penalty per 1000 synaptic ops per inference over budget"
+    )
+    sop_budget: float = _flag(0.0, "synaptic ops per inference the penalty allows for free")
     # Warm start: policy, critic and observation normaliser from another run's checkpoint
     # ("best", "last" or an env-step count); fresh optimiser, steps counted from 0.
-    init_from: str | None = None
-    init_checkpoint: str = "best"
+    init_from: str | None = _flag(
+        None, "start from this run's networks and normaliser (fresh optimiser)"
+    )
+    init_checkpoint: str = _flag(
+        "best", "which checkpoint of --init-from: best | last | env-step count"
+    )
     # Evaluation, checkpoints, logging.
-    num_evals: int = 10
-    num_eval_envs: int = 64
-    keep_every_n_evals: int = 5
+    num_evals: int = _flag(10, "evaluations (and checkpoints) over the run")
+    num_eval_envs: int = _flag(64, "episodes per evaluation")
+    keep_every_n_evals: int = _flag(5, "keep every N-th checkpoint besides the last and the best")
     wandb: bool = False
 
     # ---- derived sizes -------------------------------------------------------------------
@@ -166,11 +183,8 @@ class RunConfig:
         return dataclasses.asdict(self)
 
     def to_json(self, path: str | os.PathLike) -> None:
-        """Write atomically (tmp file + rename) so a crash never leaves half a config."""
-        path = Path(path)
-        tmp = path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")
-        os.replace(tmp, path)
+        """Write atomically, so a crash never leaves half a config."""
+        write_json(path, self.to_dict())
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> RunConfig:
@@ -221,13 +235,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         keep_every_n_evals=1,
         critic_hidden_sizes=(64, 64),
     ),
-    # The issue-6 headline run on franka_pick, exactly the settings of the seed-0 runs that
-    # learned the pick (docs/results.md, 30 November): 512 envs, 10-step unrolls, 8 minibatches
-    # of 256 sequences, 4 epochs, gamma 0.97, constant lr 3e-4 (actor) / 1e-3 (critic, PixMC's),
-    # entropy 1e-3, 40 M steps with an evaluation every 250 k. On this 2-core CPU the MLP reached
-    # 93 % after 20 M steps (1.4 h sharing the cores with PopSAN, which trains at ~4.2 k steps/s
-    # alone); a GPU runs it much faster. The paper's lrs (1e-5 / 1e-4) were tuned for PixMC's
-    # 8 k-step batches.
+    # The headline run on franka_pick: the settings of the committed reference pick runs
+    # (docs/reference/, tests check the match; docs/design.md, "The paper preset"). The
+    # paper's lrs (1e-5 / 1e-4) were tuned for PixMC's 8 k-step batches.
     "paper": dict(
         env="franka_pick",
         actor="popsan",

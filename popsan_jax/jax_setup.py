@@ -5,6 +5,8 @@ Nothing here runs at import time; callers opt in explicitly.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 from pathlib import Path
 
@@ -33,8 +35,5 @@ def import_mjx_quietly() -> None:
     mujoco 3.17's MJX prints "Failed to import warp" on stdout whenever the optional Warp (GPU)
     backend is absent, which is always the case on CPU; users read it as an error.
     """
-    import contextlib
-    import io
-
     with contextlib.redirect_stdout(io.StringIO()):
-        import mujoco.mjx  # noqa: F401
+        import mujoco.mjx  # noqa: F401  (imported here: the point is to capture its print)

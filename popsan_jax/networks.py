@@ -20,10 +20,20 @@ import jax.numpy as jnp
 from brax.training import distribution, networks, types
 from brax.training.agents.ppo.networks import PPONetworks
 
-from popsan_jax.actor import PopSAN
+from popsan_jax.config import ACTORS
 from popsan_jax.errors import ConfigError
+from popsan_jax.snn.popsan import PopSAN
 
-ACTORS = ("popsan", "mlp")
+
+def dense_stack(
+    x: jax.Array, hidden_sizes: Sequence[int], activation: Callable, out_features: int
+) -> jax.Array:
+    """``hidden_k`` Dense + activation layers, then a linear ``output`` layer (inside a compact
+    method: the layers belong to the calling module, so its params read ``hidden_k``/``output``).
+    """
+    for k, size in enumerate(hidden_sizes):
+        x = activation(nn.Dense(size, name=f"hidden_{k}")(x))
+    return nn.Dense(out_features, name="output")(x)
 
 
 class MLPActor(nn.Module):
@@ -35,10 +45,7 @@ class MLPActor(nn.Module):
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
-        x = obs
-        for k, size in enumerate(self.hidden_sizes):
-            x = self.activation(nn.Dense(size, name=f"hidden_{k}")(x))
-        return jnp.tanh(nn.Dense(self.action_size, name="output")(x))
+        return jnp.tanh(dense_stack(obs, self.hidden_sizes, self.activation, self.action_size))
 
 
 class Critic(nn.Module):
@@ -49,10 +56,7 @@ class Critic(nn.Module):
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
-        x = obs
-        for k, size in enumerate(self.hidden_sizes):
-            x = self.activation(nn.Dense(size, name=f"hidden_{k}")(x))
-        return jnp.squeeze(nn.Dense(1, name="output")(x), axis=-1)
+        return jnp.squeeze(dense_stack(obs, self.hidden_sizes, self.activation, 1), axis=-1)
 
 
 def make_actor(name: str, actor_kwargs: Mapping[str, Any] | None, action_size: int) -> nn.Module:
@@ -101,24 +105,26 @@ class PolicyWithLogStd(nn.Module):
         return jnp.concatenate([mean, jnp.broadcast_to(log_std, mean.shape)], axis=-1)
 
 
-class MeanLogStdNormal(distribution.ParametricDistribution):
+class MeanLogStdNormal(distribution.NormalDistribution):
     """Normal over actions from ``[..., 2A]`` = (mean, log_std); identity postprocessing.
 
     The actor's mean is already tanh-squashed, so unlike Brax's ``NormalTanhDistribution`` there
-    is no second tanh: ``mode == mean`` and ``scale == exp(log_std)``.
+    is no second tanh: ``mode == mean`` and ``scale == exp(log_std)``. Brax's public
+    ``NormalDistribution`` takes ``(loc, scale)``; this one reads the policy's flat output.
     """
 
     def __init__(self, event_size: int) -> None:
-        super().__init__(
-            param_size=2 * event_size,
-            postprocessor=distribution.IdentityPostprocessor(),
-            event_ndims=1,
-            reparametrizable=True,
-        )
+        super().__init__(event_size)
+        self.event_size = event_size
 
-    def create_dist(self, parameters: jax.Array) -> distribution._NormalDistribution:
+    @property
+    def param_size(self) -> int:
+        """The policy's output size: mean and log_std."""
+        return 2 * self.event_size
+
+    def create_dist(self, parameters: jax.Array) -> Any:
         loc, log_std = jnp.split(parameters, 2, axis=-1)
-        return distribution._NormalDistribution(loc=loc, scale=jnp.exp(log_std))
+        return super().create_dist((loc, jnp.exp(log_std)))
 
 
 def make_ppo_networks(

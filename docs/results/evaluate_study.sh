@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The evaluation half of a study (sourced by reach_study.sh and pick_study.sh): 1000-episode
+# The evaluation half of a study (sourced by reach/study.sh and pick_seeds/study.sh): 1000-episode
 # evaluations of the 6 runs <actor>-s<seed> under RUNS, the energy table with success per T
 # (T = 1..5, latency and tracking for seed 0; T = 1..3 for seeds 1 and 2, each against its own
 # seed's ANN run), and the training curves.

@@ -1,0 +1,220 @@
+"""Checkpoints of a run directory, and :func:`load_run` for replay / evaluation.
+
+(Warm-starting a new run from another run's checkpoint is a training rule:
+:mod:`popsan_jax.training.warm_start`.)
+
+Layout under ``runs/<name>/checkpoints/``::
+
+    step_000000123456/   an Orbax PyTree checkpoint: {"state": TrainingState, "key": rng key}
+    index.json           the manifest: every kept checkpoint, plus "last" and "best"
+
+Atomicity: Orbax writes into a temporary directory and renames it when complete; the manifest
+is written to a temporary file and ``os.replace``-d, and only lists finished checkpoints.
+A crash at any point therefore leaves the previous manifest and everything it names intact.
+Pruning keeps every ``keep_every_n_evals``-th evaluation, the last, and the best by success
+rate; directories are deleted only after the manifest that drops them is in place.
+
+A checkpoint restores into a template built from the saved ``config.json``, so shapes, the
+optimiser structure and the normaliser are checked against the config; any mismatch or damage
+raises :class:`popsan_jax.errors.CheckpointError`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import orbax.checkpoint as ocp
+from brax.training.agents.ppo import networks as ppo_networks
+
+from popsan_jax.config import RunConfig
+from popsan_jax.errors import CheckpointError, ConfigError
+from popsan_jax.io import write_json
+from popsan_jax.training.iteration import init_training_state
+from popsan_jax.training.setup import build_networks, make_env, make_optimizer
+
+INDEX = "index.json"
+CONFIG = "config.json"
+
+
+def checkpoint_dir(run_dir: str | os.PathLike) -> Path:
+    return Path(run_dir) / "checkpoints"
+
+
+def read_index(run_dir: str | os.PathLike) -> dict[str, Any]:
+    """The manifest ``{"checkpoints": [{"step", "eval_index", "success_rate", "dir"}], "last",
+    "best"}``; raises CheckpointError when missing or unreadable."""
+    path = checkpoint_dir(run_dir) / INDEX
+    if not Path(run_dir).is_dir():
+        raise CheckpointError(f"run directory {run_dir} does not exist")
+    try:
+        index = json.loads(path.read_text())
+        entries = index["checkpoints"]
+        if not entries or index["last"] is None:
+            raise ValueError("no checkpoints listed")
+    except FileNotFoundError as e:
+        raise CheckpointError(f"no checkpoint in {run_dir} (missing {path})") from e
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise CheckpointError(f"corrupt checkpoint index {path}: {e}") from e
+    return index
+
+
+def _write_index(run_dir: Path, index: dict[str, Any]) -> None:
+    write_json(checkpoint_dir(run_dir) / INDEX, index)
+
+
+def save_checkpoint(
+    run_dir: str | os.PathLike,
+    state: Any,
+    key: jax.Array,
+    eval_index: int,
+    success_rate: float,
+    keep_every_n_evals: int,
+) -> Path:
+    """Write ``state`` (un-replicated TrainingState) and the host rng ``key``; update the manifest
+    and prune. Returns the checkpoint directory."""
+    run_dir = Path(run_dir).absolute()  # Orbax rejects relative paths
+    root = checkpoint_dir(run_dir)
+    root.mkdir(parents=True, exist_ok=True)
+    step = int(state.env_steps)
+    name = f"step_{step:012d}"
+    try:
+        index = read_index(run_dir)
+    except CheckpointError:
+        index = {"checkpoints": [], "last": None, "best": None}
+    with ocp.StandardCheckpointer() as ckptr:
+        # force: a directory left by a crash between the Orbax write and the manifest update
+        # is not listed anywhere and may be overwritten.
+        ckptr.save(root / name, {"state": state, "key": key}, force=True)
+        ckptr.wait_until_finished()
+    entries = [e for e in index["checkpoints"] if e["step"] != step]
+    entries.append(
+        dict(step=step, eval_index=eval_index, success_rate=float(success_rate), dir=name)
+    )
+    best = max(entries, key=lambda e: (e["success_rate"], e["step"]))
+    kept = [
+        e
+        for e in entries
+        if e["step"] in (step, best["step"]) or e["eval_index"] % keep_every_n_evals == 0
+    ]
+    _write_index(run_dir, {"checkpoints": kept, "last": step, "best": best["step"]})
+    for e in entries:
+        if e not in kept:
+            shutil.rmtree(root / e["dir"], ignore_errors=True)
+    return root / name
+
+
+def _entry(index: dict[str, Any], which: str | int) -> dict[str, Any]:
+    if which in ("last", "best"):
+        step = index[which]
+    elif isinstance(which, int):
+        step = which
+    else:
+        raise CheckpointError(f"unknown checkpoint {which!r}; use 'last', 'best' or a step")
+    for e in index["checkpoints"]:
+        if e["step"] == step:
+            return e
+    steps = ", ".join(str(e["step"]) for e in index["checkpoints"])
+    raise CheckpointError(f"no checkpoint at step {step}; available: {steps}")
+
+
+def restore_checkpoint(
+    run_dir: str | os.PathLike, template: Any, which: str | int = "last"
+) -> tuple[Any, jax.Array, dict[str, Any]]:
+    """Restore ``(state, key, manifest entry)`` into the structure of ``template`` (a fresh
+    TrainingState from the same config)."""
+    entry = _entry(read_index(run_dir), which)
+    path = checkpoint_dir(run_dir) / entry["dir"]
+    target = {"state": template, "key": jax.random.PRNGKey(0)}
+    abstract = jax.tree.map(lambda x: ocp.utils.to_shape_dtype_struct(jnp.asarray(x)), target)
+    try:
+        with ocp.StandardCheckpointer() as ckptr:
+            restored = ckptr.restore(path.absolute(), abstract)
+    except Exception as e:  # Orbax raises many types for damaged or mismatched data
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise CheckpointError(f"cannot restore checkpoint {path}: {msg[:300]}") from e
+    return restored["state"], restored["key"], entry
+
+
+@dataclasses.dataclass
+class LoadedRun:
+    """A checkpoint rebuilt from its run directory alone.
+
+    ``networks`` are the PPONetworks rebuilt from ``config``; ``env`` is the unwrapped env.
+    """
+
+    config: RunConfig
+    step: int
+    normalizer_params: Any
+    policy_params: Any
+    value_params: Any
+    networks: ppo_networks.PPONetworks
+    env: Any
+    entry: dict[str, Any]
+
+    def make_policy(
+        self, deterministic: bool = True
+    ) -> Callable[[jax.Array, jax.Array], jax.Array]:
+        """``policy(obs [N, O], key) -> action [N, A]`` (the actor mean when deterministic)."""
+        inference = ppo_networks.make_inference_fn(self.networks)(
+            (self.normalizer_params, self.policy_params), deterministic=deterministic
+        )
+        return lambda obs, key: inference(obs, key)[0]
+
+
+def load_run(
+    run_dir: str | os.PathLike,
+    which: str | int = "last",
+    environment: Any = None,
+    env_overrides: dict[str, Any] | None = None,
+) -> LoadedRun:
+    """Load a checkpoint (``"last"``, ``"best"`` or an env-step count) from a run directory.
+
+    ``environment`` replaces the env named in the config (for custom envs); ``env_overrides``
+    are merged over the config's own (evaluating under changed env settings; an unknown key
+    raises ConfigError). Missing, corrupt or incompatible data raises CheckpointError.
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise CheckpointError(f"run directory {run_dir} does not exist")
+    try:
+        config = RunConfig.from_json(run_dir / CONFIG)
+    except ConfigError as e:
+        raise CheckpointError(f"run {run_dir} has an unusable config: {e}") from e
+    if env_overrides:
+        if environment is not None:
+            raise ConfigError("env overrides apply to the run's own env, not a custom one")
+        config = config.replace(env_overrides={**config.env_overrides, **env_overrides})
+        environment = make_env(config)  # an unknown key is the caller's ConfigError
+    try:
+        env = environment if environment is not None else make_env(config)
+        networks = build_networks(config, env.observation_size, env.action_size)
+    except ConfigError as e:
+        raise CheckpointError(f"run {run_dir} has an unusable config: {e}") from e
+    except (TypeError, ValueError) as e:
+        raise CheckpointError(f"run {run_dir}: config does not build networks: {e}") from e
+    template = init_training_state(
+        config,
+        networks,
+        make_optimizer(config),
+        env.observation_size,
+        jax.random.PRNGKey(0),
+    )
+    state, _, entry = restore_checkpoint(run_dir, template, which)
+    return LoadedRun(
+        config=config,
+        step=int(state.env_steps),
+        normalizer_params=state.normalizer_params,
+        policy_params=state.params.policy,
+        value_params=state.params.value,
+        networks=networks,
+        env=env,
+        entry=entry,
+    )

@@ -1,0 +1,232 @@
+"""The jitted pieces of one PPO training iteration, built from Brax's own parts.
+
+See :mod:`popsan_jax.training.loop` for why we drive Brax's pieces with our own loop. Shapes:
+``E`` envs on this device, ``U`` unrolls per iteration, ``L`` unroll length, ``S = U * E``
+sequences, ``M`` minibatches.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import optax
+from brax.training import acting, gradients
+from brax.training.acme import running_statistics
+from brax.training.agents.ppo import losses as ppo_losses
+from brax.training.agents.ppo import networks as ppo_networks
+
+from popsan_jax.config import RunConfig
+from popsan_jax.training import loss
+
+AXIS = "devices"
+
+
+@flax.struct.dataclass
+class TrainingState:
+    """Everything a resumed run needs besides the rng key (kept by the host loop).
+
+    ``env_steps`` is an int32 scalar: 2**31 steps is far beyond any planned run.
+    """
+
+    params: ppo_losses.PPONetworkParams
+    opt_state: Any
+    normalizer_params: running_statistics.RunningStatisticsState
+    env_steps: jax.Array
+
+
+def init_training_state(
+    config: RunConfig,
+    networks: ppo_networks.PPONetworks,
+    optimizer: optax.GradientTransformation,
+    observation_size: int,
+    key: jax.Array,
+) -> TrainingState:
+    key_policy, key_value = jax.random.split(key)
+    params = ppo_losses.PPONetworkParams(
+        policy=networks.policy_network.init(key_policy),
+        value=networks.value_network.init(key_value),
+    )
+    normalizer = running_statistics.init_state(jnp.zeros((observation_size,), jnp.float32))
+    return TrainingState(
+        params=params,
+        opt_state=optimizer.init(params),
+        normalizer_params=normalizer,
+        env_steps=jnp.zeros((), jnp.int32),
+    )
+
+
+def all_finite(tree: Any) -> jax.Array:
+    leaves = [
+        jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree) if jnp.issubdtype(x, jnp.inexact)
+    ]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
+
+
+def refresh_reset_states(env: Any, env_state: Any, key: jax.Array) -> Any:
+    """Redraw the states that Brax's ``AutoResetWrapper`` restarts finished episodes from.
+
+    That wrapper restores ``info["first_pipeline_state"]``/``info["first_obs"]``, drawn once at
+    the first reset, so without this every episode of an env slot would start from the same
+    cube / target position and the policy would see only ``num_envs`` distinct tasks. One
+    batched reset per iteration (not per step) keeps it cheap.
+
+    Args:
+      env: the training-wrapped env (vmapped, auto-reset).
+      env_state: its batched state, ``E`` envs on this device.
+      key: rng for the new start states.
+    """
+    fresh = env.reset(jax.random.split(key, env_state.obs.shape[0]))
+    info = {
+        **env_state.info,
+        "first_pipeline_state": fresh.pipeline_state,
+        "first_obs": fresh.obs,
+    }
+    return env_state.replace(info=info)
+
+
+def stagger_episodes(
+    env: Any,
+    env_state: Any,
+    policy: Callable[[jax.Array, jax.Array], tuple[jax.Array, Any]],
+    key: jax.Array,
+    episode_length: int,
+) -> Any:
+    """Step env ``e`` of a freshly reset batch ``n_e`` times (``n_e`` uniform in [0, L)), no SGD.
+
+    A fresh reset starts all ``E`` envs at step 0 of their episodes, so each of the next ``L /
+    unroll_length`` iterations would learn from a single phase of the episode (all reaching,
+    then all grasping, ...). A policy far into training may not survive that (docs/design.md,
+    "Staggering on resume"). Costs ``(L - 1) * E`` uncounted env steps of ``policy``
+    (stochastic).
+
+    Args:
+      env: the training-wrapped (vmapped, auto-reset) env.
+      env_state: its batched state, ``E`` envs on this device, all at episode step 0.
+      policy: ``policy(obs [E, O], key) -> (action [E, A], extras)``.
+      key: rng for the step counts and the actions.
+      episode_length: ``L``, control steps per episode.
+    """
+    key_counts, key_steps = jax.random.split(key)
+    counts = jax.random.randint(key_counts, (env_state.obs.shape[0],), 0, episode_length)
+
+    def body(carry, t):
+        state, k = carry
+        k, k_act = jax.random.split(k)
+        stepped = env.step(state, policy(state.obs, k_act)[0])
+        keep = t < counts  # [E]: env e takes steps 0 .. n_e - 1 and then stands still
+
+        def pick(new: jax.Array, old: jax.Array) -> jax.Array:
+            return jnp.where(keep.reshape(keep.shape + (1,) * (new.ndim - 1)), new, old)
+
+        return (jax.tree.map(pick, stepped, state), k), None
+
+    (env_state, _), _ = jax.lax.scan(body, (env_state, key_steps), jnp.arange(episode_length - 1))
+    return env_state
+
+
+def make_iteration_fn(
+    config: RunConfig,
+    env: Any,
+    networks: ppo_networks.PPONetworks,
+    optimizer: optax.GradientTransformation,
+    diagnostics_fn: Callable[[TrainingState, jax.Array], dict[str, jax.Array]],
+    axis_name: str | None = AXIS,
+) -> Callable[[TrainingState, Any, jax.Array], tuple[TrainingState, Any, dict[str, jax.Array]]]:
+    """One full iteration (unroll, normaliser update, epochs of minibatch SGD) for one device.
+
+    The loss is :func:`popsan_jax.training.loss.make_loss_fn`'s: Brax's PPO loss, plus the SOP
+    penalty when ``config.sop_cost > 0``.
+
+    ``env`` is the training-wrapped (vmapped, auto-reset) env; ``diagnostics_fn(state, obs [B,
+    O]) -> metrics`` adds entropy / firing rates. Under pmap, gradients and normaliser statistics
+    are averaged over ``axis_name``. Returns per-iteration mean metrics plus ``finite`` (1.0 when
+    loss and parameters are all finite).
+    """
+    make_policy = ppo_networks.make_inference_fn(networks)
+    loss_fn = loss.make_loss_fn(config, networks, env.action_size)
+    update = gradients.gradient_update_fn(loss_fn, optimizer, axis_name, has_aux=True)
+    minibatches = config.num_minibatches
+
+    def minibatch_step(carry, data, normalizer_params):
+        opt_state, params, key = carry
+        key, key_loss = jax.random.split(key)
+        (_, metrics), params, opt_state = update(
+            params, normalizer_params, data, key_loss, optimizer_state=opt_state
+        )
+        return (opt_state, params, key), metrics
+
+    def epoch(carry, _, data, normalizer_params):
+        opt_state, params, key = carry
+        key, key_perm, key_grad = jax.random.split(key, 3)
+
+        def shuffle(x: jax.Array) -> jax.Array:
+            x = jax.random.permutation(key_perm, x)
+            return jnp.reshape(x, (minibatches, -1) + x.shape[1:])
+
+        (opt_state, params, _), metrics = jax.lax.scan(
+            functools.partial(minibatch_step, normalizer_params=normalizer_params),
+            (opt_state, params, key_grad),
+            jax.tree.map(shuffle, data),
+        )
+        return (opt_state, params, key), metrics
+
+    def iteration(state: TrainingState, env_state: Any, key: jax.Array):
+        key_sgd, key_unroll, key_reset = jax.random.split(key, 3)
+        policy = make_policy((state.normalizer_params, state.params.policy))
+        env_state = refresh_reset_states(env, env_state, key_reset)
+
+        def unroll(carry, _):
+            env_state, k = carry
+            k, k_next = jax.random.split(k)
+            env_state, data = acting.generate_unroll(
+                env, env_state, policy, k, config.unroll_length, extra_fields=("truncation",)
+            )
+            return (env_state, k_next), data
+
+        (env_state, _), data = jax.lax.scan(
+            unroll, (env_state, key_unroll), (), length=config.unrolls_per_iteration
+        )
+        # [U, L, E, ...] -> [U * E, L, ...]: one sequence per row, as compute_ppo_loss expects.
+        data = jax.tree.map(lambda x: jnp.swapaxes(x, 1, 2), data)
+        data = jax.tree.map(lambda x: jnp.reshape(x, (-1,) + x.shape[2:]), data)
+        normalizer = running_statistics.update(
+            state.normalizer_params, data.observation, pmap_axis_name=axis_name
+        )
+        (opt_state, params, _), metrics = jax.lax.scan(
+            functools.partial(epoch, data=data, normalizer_params=normalizer),
+            (state.opt_state, state.params, key_sgd),
+            (),
+            length=config.num_updates_per_batch,
+        )
+        steps = config.env_steps_per_iteration
+        new_state = TrainingState(
+            params=params,
+            opt_state=opt_state,
+            normalizer_params=normalizer,
+            env_steps=state.env_steps + jnp.int32(steps),
+        )
+        out = {
+            "loss/total": metrics["total_loss"],
+            "loss/policy": metrics["policy_loss"],
+            "loss/value": metrics["v_loss"],
+            "loss/entropy": metrics["entropy_loss"],
+            "kl": metrics["kl_mean"],
+        }
+        if config.sop_cost:  # the penalised SOPs of the minibatches, before each update
+            out["loss/sop_penalty"] = metrics["sop_penalty"]
+        out = {k: jnp.mean(v) for k, v in out.items()}
+        out["train/reward_per_step"] = jnp.mean(data.reward)
+        obs_sample = data.observation[: min(256, data.observation.shape[0]), 0]
+        out.update(diagnostics_fn(new_state, obs_sample))
+        finite = all_finite((out["loss/total"], params, normalizer.mean, normalizer.std))
+        out["finite"] = finite.astype(jnp.float32)
+        if axis_name is not None:
+            out = jax.lax.pmean(out, axis_name)
+        return new_state, env_state, out
+
+    return iteration

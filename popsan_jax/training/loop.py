@@ -1,0 +1,265 @@
+"""PPO training loop: our own host loop around Brax's PPO pieces.
+
+Why not ``brax.training.agents.ppo.train``: it cannot resume the optimiser state
+(google/brax#655, performance dips after a restore), it uses one learning rate for actor and
+critic (the PopSAN paper used actor 1e-5 / critic 1e-4), and it has no NaN stop or per-update
+hook for logging and checkpointing. So this loop REUSES Brax's pieces instead of copying them:
+``ppo.losses.compute_ppo_loss`` (GAE + clipped surrogate), ``acting.generate_unroll``,
+``acme.running_statistics`` (observation normalisation, clipped to ``obs_clip``),
+``gradients.gradient_update_fn``, ``envs.wrappers.training.wrap`` and ``ppo.networks``.
+
+One training iteration (unroll, normaliser update, minibatch epochs) is a single pmapped
+function over ``jax.local_devices()`` (:mod:`popsan_jax.training.iteration`); the host loop only
+logs, evaluates, checks for NaN and writes checkpoints between iterations.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.envs.wrappers import training as brax_training
+from brax.training.agents.ppo import networks as ppo_networks
+
+from popsan_jax.config import RunConfig
+from popsan_jax.errors import ConfigError, NonFiniteError
+from popsan_jax.rollout import make_episode_runner
+from popsan_jax.snn.ops import sops_per_inference, spiking_layer_names
+from popsan_jax.training import checkpoint
+from popsan_jax.training.iteration import (
+    AXIS,
+    TrainingState,
+    init_training_state,
+    make_iteration_fn,
+    stagger_episodes,
+)
+from popsan_jax.training.run_log import RunLogger, wandb_available
+from popsan_jax.training.setup import build_networks, make_env, make_optimizer, make_spikes_fn
+from popsan_jax.training.warm_start import warm_start
+
+
+@dataclasses.dataclass
+class TrainResult:
+    """What :func:`train` hands back: final (un-replicated) state and the last eval record."""
+
+    state: TrainingState
+    key: jax.Array
+    last_eval: dict[str, Any] | None
+    run_dir: Path
+
+
+def make_diagnostics_fn(
+    config: RunConfig, networks: ppo_networks.PPONetworks, action_size: int
+) -> Callable[[TrainingState, jax.Array], dict[str, jax.Array]]:
+    """``fn(state, obs [B, O]) -> {entropy, firing_rate/<layer>, sops}`` on a sample of the
+    batch (``sops``: synaptic operations per inference, the energy convention's count)."""
+    spikes_fn = make_spikes_fn(config, action_size) if config.actor == "popsan" else None
+
+    def diagnostics(state: TrainingState, obs: jax.Array) -> dict[str, jax.Array]:
+        logits = networks.policy_network.apply(state.normalizer_params, state.params.policy, obs)
+        entropy = networks.parametric_action_distribution.entropy(logits, jax.random.PRNGKey(0))
+        out = {"entropy": jnp.mean(entropy)}
+        if spikes_fn is not None:
+            spikes = spikes_fn(state.params.policy, state.normalizer_params, obs)
+            names = spiking_layer_names(len(spikes) - 2)
+            out.update(
+                {f"firing_rate/{n}": jnp.mean(s) for n, s in zip(names, spikes, strict=True)}
+            )
+            out["sops"] = sops_per_inference(spikes)
+        return out
+
+    return diagnostics
+
+
+@dataclasses.dataclass
+class Trainer:
+    """The compiled-once pieces of a run: env (unwrapped and training-wrapped), networks,
+    optimiser and the pmapped ``iteration(state [D], env_state [D], keys [D]) -> (state,
+    env_state, metrics)`` (D = local devices; the training state and env state are donated)."""
+
+    config: RunConfig
+    env: Any
+    wrapped: Any
+    networks: ppo_networks.PPONetworks
+    optimizer: Any
+    iteration: Callable[..., Any]
+    episode_length: int
+    devices: list[Any]
+
+
+def build_trainer(config: RunConfig, environment: Any = None) -> Trainer:
+    """Validate ``config`` against the local devices and build the training pieces."""
+    devices = jax.local_devices()
+    config.validate(len(devices))
+    env = environment if environment is not None else make_env(config)
+    episode_length = config.episode_length or int(env.config.episode_length)
+    wrapped = brax_training.wrap(env, episode_length=episode_length, action_repeat=1)
+    networks = build_networks(config, env.observation_size, env.action_size)
+    optimizer = make_optimizer(config)
+    iteration = jax.pmap(
+        make_iteration_fn(
+            config,
+            wrapped,
+            networks,
+            optimizer,
+            make_diagnostics_fn(config, networks, env.action_size),
+        ),
+        axis_name=AXIS,
+        donate_argnums=(0, 1),
+    )
+    return Trainer(config, env, wrapped, networks, optimizer, iteration, episode_length, devices)
+
+
+def _stagger(t: Trainer, make_policy: Callable[..., Any]) -> Callable[..., Any]:
+    """pmapped ``(state [D], env_state [D], keys [D]) -> env_state``: stagger_episodes
+    with the run's stochastic policy."""
+
+    def stagger(state: TrainingState, env_state: Any, key: jax.Array) -> Any:
+        policy = make_policy((state.normalizer_params, state.params.policy))
+        return stagger_episodes(t.wrapped, env_state, policy, key, t.episode_length)
+
+    return jax.pmap(stagger)
+
+
+def _unreplicate(tree: Any) -> Any:
+    return jax.tree.map(lambda x: x[0], tree)
+
+
+def train(
+    config: RunConfig,
+    run_dir: str | Path,
+    *,
+    resume: bool = False,
+    environment: Any = None,
+    progress: bool = True,
+    on_iteration: Callable[[int, dict[str, float]], None] | None = None,
+) -> TrainResult:
+    """Train ``config`` into ``run_dir`` (created; resumed from its last checkpoint if ``resume``).
+
+    ``environment`` replaces the env named in the config (custom envs, tests). Raises
+    ConfigError for impossible sizes, CheckpointError for a bad resume directory and
+    NonFiniteError (with the env step) when the loss or parameters stop being finite; the last
+    good checkpoint is then left untouched.
+    """
+    run_dir = Path(run_dir)
+    if config.wandb and not wandb_available():  # before anything is written
+        raise ConfigError(
+            "--wandb needs the wandb package (pip install wandb); it is not installed"
+        )
+    t = build_trainer(config, environment)
+    env, networks, devices = t.env, t.networks, t.devices
+    key = jax.random.PRNGKey(config.seed)
+    key, key_init = jax.random.split(key)
+    state = init_training_state(config, networks, t.optimizer, env.observation_size, key_init)
+    eval_index = 0
+    if resume:
+        state, key, entry = checkpoint.restore_checkpoint(run_dir, state, "last")
+        eval_index = entry["eval_index"]
+    else:
+        if config.init_from:
+            state = warm_start(state, config, t.optimizer, environment)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        config.to_json(run_dir / checkpoint.CONFIG)
+    start_steps = int(state.env_steps)
+    start_iteration = start_steps // config.env_steps_per_iteration
+    iteration, episode_length = t.iteration, t.episode_length
+
+    make_policy = ppo_networks.make_inference_fn(networks)
+    runner = make_episode_runner(
+        env,
+        lambda p: lambda obs, k: make_policy(p, deterministic=True)(obs, k)[0],
+        config.num_eval_envs,
+        episode_length=episode_length,
+    )
+
+    def evaluate(state: TrainingState, key: jax.Array) -> dict[str, float]:
+        """Deterministic-policy episodes on the unwrapped env (popsan_jax.rollout)."""
+        t0 = time.monotonic()
+        batch = jax.device_get(runner((state.normalizer_params, state.params.policy), key))
+        eval_s = time.monotonic() - t0
+        return {
+            "success_rate": float(np.mean(batch.success)),
+            "reached_rate": float(np.mean(batch.reached)),
+            "hold_time": float(np.mean(batch.hold_time)),
+            "episode_reward": float(np.mean(batch.ret)),
+            "episode_length": float(np.mean(batch.length)),
+            **{f"reward/{k}": float(np.mean(v)) for k, v in batch.terms.items()},
+            "steps_per_s": float(np.sum(batch.length)) / max(eval_s, 1e-9),
+        }
+
+    logger = RunLogger(
+        run_dir,
+        config.num_iterations * config.env_steps_per_iteration,
+        initial_steps=start_steps,
+        config=config.to_dict(),
+        use_wandb=config.wandb,
+        progress=progress,
+    )
+    try:
+        logger.message(
+            f"compiling: {config.actor} actor on {config.env}, {config.num_envs} envs on "
+            f"{len(devices)} {jax.default_backend()} device(s), "
+            f"{config.env_steps_per_iteration} env steps/iteration, "
+            f"{config.num_iterations} iterations (starting at {start_iteration}) -> {run_dir}"
+        )
+        if config.init_from and not resume:
+            logger.message(
+                f"initialised from {config.init_from} ({config.init_checkpoint} checkpoint)"
+            )
+        key, key_env = jax.random.split(key)
+        env_keys = jax.random.split(key_env, config.num_envs).reshape(len(devices), -1, 2)
+        env_state = jax.pmap(t.wrapped.reset)(env_keys)
+        last_eval = None
+        if start_steps == 0:  # the untrained policy's baseline starts every learning curve
+            key, key_eval = jax.random.split(key)
+            last_eval = logger.log("eval", 0, evaluate(state, key_eval))
+        state_r = jax.device_put_replicated(state, devices)
+        del state
+        if start_steps or config.init_from:  # a trained policy: see stagger_episodes
+            logger.message("trained policy: spreading the envs over episode phases (not counted)")
+            key, key_stagger = jax.random.split(key)
+            env_state = _stagger(t, make_policy)(
+                state_r, env_state, jax.random.split(key_stagger, len(devices))
+            )
+        for it in range(start_iteration, config.num_iterations):
+            key, key_it = jax.random.split(key)
+            t0 = time.monotonic()
+            state_r, env_state, metrics = iteration(
+                state_r, env_state, jax.random.split(key_it, len(devices))
+            )
+            metrics = {k: float(v[0]) for k, v in jax.device_get(metrics).items()}
+            elapsed = time.monotonic() - t0
+            steps = int(jax.device_get(state_r.env_steps[0]))
+            if metrics.pop("finite") < 1.0:
+                raise NonFiniteError(
+                    f"non-finite loss or parameters at env step {steps} (iteration {it + 1}); "
+                    f"stopped without saving, the last good checkpoint in {run_dir} is kept"
+                )
+            metrics["steps_per_s"] = config.env_steps_per_iteration / max(elapsed, 1e-9)
+            logger.log("train", steps, metrics)
+            if on_iteration is not None:
+                on_iteration(steps, metrics)
+            if (it + 1) % config.eval_interval and it + 1 != config.num_iterations:
+                continue
+            state = _unreplicate(state_r)
+            key, key_eval = jax.random.split(key)
+            last_eval = logger.log("eval", steps, evaluate(state, key_eval))
+            eval_index += 1
+            checkpoint.save_checkpoint(
+                run_dir,
+                state,
+                key,
+                eval_index,
+                last_eval["success_rate"],
+                config.keep_every_n_evals,
+            )
+        final = _unreplicate(state_r)
+    finally:
+        logger.close()
+    return TrainResult(state=final, key=key, last_eval=last_eval, run_dir=run_dir)

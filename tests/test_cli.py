@@ -1,0 +1,144 @@
+"""The entry points' flags (derived from RunConfig), signal handling, and the entry points
+themselves run as a user runs them: bad input is one ``error:`` line and exit status 2."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from popsan_jax import cli
+from popsan_jax.config import RunConfig
+
+ROOT = Path(__file__).resolve().parent.parent
+
+# train.py's config flags before they were derived from RunConfig (the hand-written table).
+HAND_TABLE = """env actor seed num_envs total_env_steps episode_length unroll_length batch_size
+num_minibatches num_updates_per_batch actor_lr critic_lr lr_schedule max_grad_norm entropy_cost
+discounting gae_lambda clipping_epsilon reward_scaling obs_clip init_log_std critic_hidden_sizes
+sop_cost sop_budget init_from init_checkpoint num_evals num_eval_envs keep_every_n_evals""".split()
+
+
+def test_config_flags_are_the_run_config_fields_with_their_types():
+    flags = cli.config_flags()
+    assert sorted(flags) == sorted(HAND_TABLE)
+    assert all(help_text for _, help_text in flags.values())
+    args = cli.train_parser().parse_args(
+        "--critic-hidden-sizes 64,32 --episode-length 50 --max-grad-norm 0.5 --init-from r "
+        "--actor-lr 1e-4 --timesteps 2 --hidden-sizes 8,8".split()
+    )
+    given, actor = cli.given_flags(args)
+    assert given == dict(
+        critic_hidden_sizes=(64, 32), episode_length=50, max_grad_norm=0.5, init_from="r",
+        actor_lr=1e-4,
+    )  # fmt: skip
+    assert actor == {"timesteps": 2, "hidden_sizes": (8, 8)}
+    # Every given value builds a valid RunConfig field of the same type.
+    config = RunConfig(**given)
+    assert config.critic_hidden_sizes == (64, 32) and config.episode_length == 50
+    assert cli.given_flags(cli.train_parser().parse_args([])) == ({}, {})
+
+
+@pytest.mark.parametrize("argv", [["--num-envs", "many"], ["--hidden-sizes", "0,4"]])
+def test_train_flag_type_errors_exit_2(argv, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.train_parser().parse_args(argv)
+    assert exc.value.code == 2
+
+
+def test_eval_flags():
+    args = cli.eval_parser().parse_args(["run", "--timesteps", "1,3", "--best"])
+    assert args.energy_timesteps == (1, 3) and args.best and args.run_dir == "run"
+    assert cli.eval_parser().parse_args(["run"]).energy_timesteps == (1, 2, 3, 4, 5)
+    for argv in (
+        ["run", "--energy-timesteps", "0,x"],
+        ["run", "--no-such-flag"],
+        ["run", "--env-override", "no_equals_sign"],
+        ["run", "--all-checkpoints", "--best"],  # one of --best / --step / --all-checkpoints
+    ):
+        with pytest.raises(SystemExit) as exc:
+            cli.eval_parser().parse_args(argv)
+        assert exc.value.code == 2
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_sigint_even_if_ignored_and_sigterm_stop_like_ctrl_c(signum):
+    ignored = signal.signal(signal.SIGINT, signal.SIG_IGN)  # as a `cmd &` job of a script gets
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with cli.stop_on_signals():
+                os.kill(os.getpid(), signum)
+                time.sleep(5)  # the handler raises before this returns
+                raise AssertionError("the signal did not stop the run")
+        # the handlers found are restored
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    finally:
+        signal.signal(signal.SIGINT, ignored)
+
+
+def test_env_override_argument_and_file_tag():
+    env_override, overrides_tag = cli.env_override, cli.overrides_tag
+    assert env_override("grasp_radius=0.0") == ("grasp_radius", 0.0)
+    assert env_override("object_x_range=[0.45, 0.55]") == ("object_x_range", [0.45, 0.55])
+    assert env_override("name=plain text") == ("name", "plain text")
+    for bad in ("no_equals", "=1"):
+        with pytest.raises(argparse.ArgumentTypeError, match="KEY=VALUE"):
+            env_override(bad)
+    assert overrides_tag({}) == ""
+    tag = overrides_tag({"grasp_radius": 0.0, "object_x_range": [0.45, 0.55], "a/b": "x y"})
+    assert tag == "+grasp_radius=0.0+object_x_range=0.45,0.55+ab=xy"
+
+
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["train.py", "--preset", "tiny"], "error: unknown preset 'tiny'"),
+        (["eval.py", "{tmp}/missing", "--no-latency"], "error: run directory .*missing"),
+        (["eval.py", "--compare", "{tmp}"], "error: .* has no metrics.jsonl"),
+    ],
+)
+def test_entry_points_exit_2_with_one_error_line(argv, match, tmp_path):
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    runs = tmp_path / "runs"
+    extra = ["--runs-dir", str(runs)] if argv[0] == "train.py" else []
+    proc = subprocess.run(
+        [sys.executable, *argv, *extra], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 2, proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert re.search(match, last), last
+    assert not runs.exists()
+
+
+@pytest.mark.slow
+def test_train_py_stops_on_an_ignored_sigint_with_exit_130(tmp_path):
+    """A `cmd &` job of a script starts with SIGINT ignored; train.py still stops on it."""
+    proc = subprocess.Popen(
+        [sys.executable, "train.py", "--env", "franka_reach", "--preset", "smoke"]
+        + ["--runs-dir", str(tmp_path), "--name", "r", "--no-progress"],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
+    try:
+        for line in proc.stderr:
+            if line.startswith("compiling:"):
+                break
+        proc.send_signal(signal.SIGINT)
+        rest = proc.stderr.read()
+        assert proc.wait(timeout=300) == 130
+    finally:
+        proc.kill()
+    last = rest.strip().splitlines()[-1]
+    assert (
+        last == f"interrupted before the first checkpoint; {tmp_path / 'r'} has nothing to resume"
+    )

@@ -1,0 +1,47 @@
+"""Warm start (``--init-from``): networks and normaliser copied, a fresh optimiser, another T
+allowed, other network shapes refused."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from _toy_env import PointPick
+
+from popsan_jax.errors import ConfigError
+from popsan_jax.training.checkpoint import load_run
+from popsan_jax.training.iteration import init_training_state
+from popsan_jax.training.setup import build_networks, make_optimizer
+from popsan_jax.training.warm_start import warm_start
+
+
+def test_warm_start_copies_networks_normaliser_and_not_the_optimiser(source_and_penalised):
+    root, source, _, _ = source_and_penalised
+    env = PointPick()
+    loaded = load_run(root / "source", "last", environment=env)
+    # A different T is allowed: PopSAN's parameters do not depend on it.
+    kwargs = {**source.actor_kwargs, "timesteps": 3}
+    config = source.replace(init_from=str(root / "source"), init_checkpoint="last")
+    config = config.replace(actor_kwargs=kwargs, seed=5)
+    nets = build_networks(config, env.observation_size, env.action_size)
+    optimizer = make_optimizer(config)
+    fresh = init_training_state(
+        config, nets, optimizer, env.observation_size, jax.random.PRNGKey(5)
+    )
+    state = warm_start(fresh, config, optimizer, env)
+    for got, want in [
+        (state.params.policy, loaded.policy_params),
+        (state.params.value, loaded.value_params),
+        (state.normalizer_params, loaded.normalizer_params),
+    ]:
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+            np.testing.assert_array_equal(a, b)
+    counts = {int(x) for x in jax.tree.leaves(state.opt_state) if jnp.issubdtype(x, jnp.integer)}
+    assert counts == {0} and int(state.env_steps) == 0
+    wider = config.replace(actor_kwargs={**kwargs, "hidden_sizes": (32,)})
+    with pytest.raises(ConfigError, match="actor hidden_sizes"):
+        warm_start(fresh, wider, optimizer, env)
+    mlp = config.replace(actor="mlp", actor_kwargs={"hidden_sizes": (16,)})
+    with pytest.raises(ConfigError, match="its actor 'popsan' differs"):
+        warm_start(fresh, mlp, optimizer, env)
