@@ -72,7 +72,10 @@ def test_paper_preset_is_the_committed_pick_run_that_learned():
     assert all(env_defaults[k] == v for k, v in overrides.items()), overrides
     for backend in ("cpu", "gpu"):
         paper = resolve_config("paper", backend, dict(seed=committed.seed))
-        assert paper == committed.replace(env_overrides={}), backend
+        # The same PPO and network settings; it now trains on the current env revision.
+        assert committed.env_revision == 1
+        current = committed.replace(env_overrides={}, env_revision=CURRENT_ENV_REVISION)
+        assert paper == current, backend
 
 
 def test_documented_t2_fine_tune_is_the_committed_run():
@@ -88,8 +91,9 @@ def test_documented_t2_fine_tune_is_the_committed_run():
         total_env_steps=4_000_000,
         num_evals=16,
     )
+    current = committed.replace(env_revision=CURRENT_ENV_REVISION)  # trained on revision 1
     for backend in ("cpu", "gpu"):
-        assert resolve_config("paper", backend, flags, {"timesteps": 2}) == committed, backend
+        assert resolve_config("paper", backend, flags, {"timesteps": 2}) == current, backend
 
 
 @pytest.mark.parametrize(

@@ -86,7 +86,9 @@ def test_energy_row_markdown_and_csv(tmp_path):
     ops = energy.snn_ops_from_totals([8.0, 6.0, 4.0, 2.0], 2, sizes, timesteps=2, action_size=1)
     names = ["encoder", "hidden_0", "hidden_1", "output"]
     # ANN 2 -> 3 -> 2 -> 1: 6 + 6 + 2 = 14 MACs = 64.4 pJ.
-    row = energy.energy_row(ops, 14, 0.5, (0.2, 0.8), trained=True, layer_names=names)
+    row = energy.energy_row(
+        ops, 14, 0.5, (0.2, 0.8), trained=True, layer_names=names, reached_rate=0.75
+    )
     # SNN: MACs 4 + 2 = 6, SOPs (8*3 + 6*2 + 4*2)/2 = 22 -> 27.6 + 19.8 = 47.4 pJ.
     assert row["snn_energy_pj"] == pytest.approx(47.4)
     assert row["ann_energy_pj"] == pytest.approx(64.4)
@@ -95,7 +97,10 @@ def test_energy_row_markdown_and_csv(tmp_path):
     assert row["dense_first_saving_pct"] == pytest.approx(100 * (1 - 147.0 / 64.4))
     assert row["firing_rate/encoder"] == pytest.approx(8 / (4 * 2 * 2))
     md = energy.energy_markdown([row], "tiny")
-    row_md = "| 2 (trained) | 0.500 (0.200-0.800) | 6 | 22 | 0.05 | 14 | 0.06 | 26.4 % | -128.3 % |"
+    row_md = (
+        "| 2 (trained) | 0.500 (0.200-0.800) | 0.750 | 6 | 22 | 0.05 | 14 | 0.06 | 26.4 % "
+        "| -128.3 % |"
+    )
     assert row_md in md
     assert (
         "Trained at T = 2" in md
