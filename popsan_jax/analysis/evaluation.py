@@ -112,7 +112,8 @@ def alive_observations(batch: EpisodeBatch) -> np.ndarray:
 def measure_snn_ops(
     loaded: Any, observations: np.ndarray, timesteps: int, chunk: int = 2048
 ) -> tuple[energy.SNNOps, tuple[int, ...]]:
-    """Run the PopSAN at ``timesteps`` on normalised ``observations [M, O]``; count operations.
+    """Run the PopSAN at ``timesteps`` on raw ``observations [M, O]`` (preprocessed as the
+    policy's input); count operations.
 
     Returns the ops per inference and the spiking layer sizes.
     """
