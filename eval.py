@@ -5,6 +5,7 @@
                    [--energy-timesteps 1,2,3,4,5] [--ann-run runs/<mlp dir>] [--video out.mp4]
                    [--no-energy] [--no-latency] [--no-tracking] [--env-override KEY=VALUE]
     python eval.py --compare runs/a runs/b ... [--out compare.png]
+    python eval.py runs/<popsan dir> [--best | --step N] --export-nir policy.nir
 
 Outputs go into the run directory: ``eval_<which>.json`` (report, energy rows, latency),
 ``tracking_<which>.png``, ``energy_<which>.md`` and ``.csv``; ``--stochastic``, ``--seed N``
@@ -16,6 +17,9 @@ re-check it on other episodes with ``--step N --seed 1`` (it was selected on the
 ``--compare`` writes the curves figure and, beside it (``compare.md``), the table of env steps
 to the first 50/80/90 % success per run and per actor.
 Video rendering needs EGL or OSMesa (CPU machines: ``apt-get install -y libosmesa6``).
+``--export-nir`` writes the PopSAN's spiking core as a NIR graph and a ``.json`` sidecar beside
+it (popsan_jax/analysis/nir_export.py; README, "Taking a policy to neuromorphic hardware") and
+does nothing else.
 A UserError (missing/corrupt/incompatible checkpoint, bad value) prints ``error: <msg>`` and
 exits 2; argparse rejects unknown flags with exit 2; Ctrl-C or SIGTERM exit 130.
 """

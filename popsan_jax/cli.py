@@ -170,6 +170,11 @@ def eval_parser(description: str | None = None) -> argparse.ArgumentParser:
     )
     p.add_argument("--ann-run", help="MLP run whose hidden sizes define the ANN baseline")
     p.add_argument("--video", metavar="OUT", help="render one episode to this .mp4/.gif")
+    p.add_argument(
+        "--export-nir",
+        metavar="PATH",
+        help="write the PopSAN as a NIR graph (PATH, .nir) and its sidecar (.json); nothing else",
+    )
     p.add_argument("--no-energy", action="store_true", help="skip the energy table")
     p.add_argument("--no-latency", action="store_true", help="skip the latency table")
     p.add_argument("--no-tracking", action="store_true", help="skip the tracking figure")

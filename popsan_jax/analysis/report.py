@@ -1,5 +1,6 @@
 """What eval.py does: evaluate one checkpoint (report, tracking figure, energy table, latency,
-video), rank every kept checkpoint, or compare the training curves of several runs.
+video), rank every kept checkpoint, compare the training curves of several runs, or export a
+PopSAN checkpoint to NIR (:mod:`popsan_jax.analysis.nir_export`).
 
 Outputs go into the run directory: ``eval_<tag>.json`` (report, energy rows, latency),
 ``tracking_<tag>.png``, ``energy_<tag>.md``/``.csv``; the ranking writes
@@ -19,7 +20,7 @@ from typing import Any
 
 import jax
 
-from popsan_jax.analysis import checkpoint_sweep, energy, evaluation, latency, plots
+from popsan_jax.analysis import checkpoint_sweep, energy, evaluation, latency, nir_export, plots
 from popsan_jax.analysis.sample_efficiency import sample_efficiency_table
 from popsan_jax.analysis.video import render_video
 from popsan_jax.cli import overrides_tag
@@ -42,7 +43,8 @@ class EvalOptions:
 
     ``which``: ``"last"``, ``"best"`` or an env-step count; ``all_checkpoints`` ranks every
     kept checkpoint instead. ``energy_timesteps``: the PopSAN T values of the energy table.
-    ``ann_run``: an MLP run whose hidden sizes define the ANN baseline.
+    ``ann_run``: an MLP run whose hidden sizes define the ANN baseline. ``export_nir``: write
+    the checkpoint as a NIR graph (this ``.nir`` path) and its ``.json`` sidecar, nothing else.
     """
 
     which: str | int = "last"
@@ -58,6 +60,7 @@ class EvalOptions:
     tracking: bool = True
     env_overrides: dict[str, Any] = dataclasses.field(default_factory=dict)
     latency_repeats: int = 100
+    export_nir: str | None = None
 
     @classmethod
     def from_flags(cls, args: argparse.Namespace) -> EvalOptions:
@@ -76,6 +79,7 @@ class EvalOptions:
             tracking=not args.no_tracking,
             env_overrides=dict(args.env_override),
             latency_repeats=args.latency_repeats,
+            export_nir=args.export_nir,
         )
 
     @property
@@ -99,7 +103,12 @@ def ann_hidden_sizes(ann_run: str | None) -> tuple[int, ...] | None:
 def evaluate(
     run_dir: str | Path, options: EvalOptions, environment: Any = None, say: Say = _quiet
 ) -> dict[str, Any]:
-    """Evaluate one checkpoint of ``run_dir`` (or rank them all); returns the written report."""
+    """Evaluate one checkpoint of ``run_dir`` (or rank them all); returns the written report.
+
+    With ``options.export_nir`` it only exports the checkpoint to NIR and returns the two paths.
+    """
+    if options.export_nir:
+        return export_nir(run_dir, options, say)
     if options.episodes < 1:
         raise UserError(f"--episodes must be >= 1, got {options.episodes}")
     ann_hidden = ann_hidden_sizes(options.ann_run)
@@ -186,6 +195,20 @@ def evaluate(
     path = write_json(run_dir / f"eval_{tag}.json", report)
     say(f"wrote {path}")
     return report
+
+
+def export_nir(run_dir: str | Path, options: EvalOptions, say: Say = _quiet) -> dict[str, str]:
+    """``--export-nir PATH``: the chosen checkpoint as a NIR graph + sidecar (README, NIR).
+
+    An MLP run, an unloadable checkpoint or a path not ending in ``.nir`` raise UserError.
+    """
+    if options.all_checkpoints:
+        raise UserError(
+            "--export-nir exports one checkpoint: give --best or --step N, not --all-checkpoints"
+        )
+    graph, side = nir_export.export_run_nir(run_dir, options.export_nir, options.which)
+    say(f"wrote {graph} and {side}")
+    return dict(nir=str(graph), sidecar=str(side))
 
 
 def rank_checkpoints(
