@@ -1,10 +1,10 @@
 """Learning tests (CI runs them): ``python train.py`` on franka_reach, PopSAN and MLP actors.
 
 Each run goes through the real CLI (flags -> RunConfig -> jitted PPO -> eval -> checkpoints) and
-must end with a success rate far above the untrained policy's (the step-0 evaluation). The
-reach task is made easier through env overrides (shorter episodes, a smaller target box) so
-that a couple of CPU minutes suffice; thresholds come from measured runs (see the report in
-issue 4) with a margin for seed noise.
+must end with a ``reached`` rate (the fingertips within 2 cm at some step: the latched rule these
+thresholds were measured with, issue 4) far above the untrained policy's (the step-0
+evaluation). The reach task is made easier through env overrides (1 s episodes, a smaller target
+box, success = within 2 cm for the last 0.2 s) so that a couple of CPU minutes suffice.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ ROOT = Path(__file__).resolve().parents[2]
 REACH_FLAGS = [
     "--env", "franka_reach",
     "--env-override", "episode_length=50",
+    "--env-override", "hold_seconds=0.2",
     "--env-override", "target_low=[0.45, -0.1, 0.25]",
     "--env-override", "target_high=[0.6, 0.1, 0.4]",
     "--num-envs", "128", "--batch-size", "128", "--num-minibatches", "4",
@@ -58,8 +59,9 @@ def test_reach_success_far_above_untrained(actor, tmp_path):
     evals = read_metrics(run_dir, "eval")
     untrained, final = evals[0], evals[-1]
     assert untrained["env_steps"] == 0 and final["env_steps"] >= total
-    assert untrained["success_rate"] <= 0.1, untrained
-    assert final["success_rate"] >= threshold, evals
+    assert untrained["reached_rate"] <= 0.1 and untrained["success_rate"] <= 0.1, untrained
+    assert final["reached_rate"] >= threshold, evals
+    assert final["success_rate"] <= final["reached_rate"], evals  # a hold implies a reach
     # the mean fingertip-target distance over an episode at least halves
     assert final["reward/dist"] < 0.5 * untrained["reward/dist"], evals
     assert checkpoint.read_index(run_dir)["last"] == final["env_steps"]
