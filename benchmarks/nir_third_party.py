@@ -91,19 +91,28 @@ def closed_loop(loaded, graph, side: dict, jax_forward, episodes: int) -> None:
     ]
     print(
         f"\nclosed loop, {episodes} episodes x {steps} steps "
-        "(success: the env's metric; franka_pick: pick-and-hold)"
+        "(the env's metrics; franka_pick: success = pick-and-hold, reached = PixMC's latch)"
     )
-    print(f"{'policy':<44} success  same success  same episode  max|da| at step 0")
-    print(f"{'JAX PopSAN':<44} {original['success'].mean():7.3f}")
+    print(
+        f"{'policy':<44} success  same success  reached  same reached  same episode  "
+        "max|da| at step 0"
+    )
+    print(
+        f"{'JAX PopSAN':<44} {original['success'].mean():7.3f}  {'':12}  "
+        f"{original['reached'].mean():7.3f}"
+    )
     alive = original["alive"]
     for label, policy in policies:
         run = host_episodes(env_fns, policy, episodes, steps)
-        same = int(np.sum(run["success"] == original["success"]))
+        same = {k: int(np.sum(run[k] == original[k])) for k in ("success", "reached")}
         equal_obs = np.all(run["obs"] == original["obs"], axis=-1) | ~alive
         traj = int(np.sum(np.all((run["alive"] == alive) & equal_obs, axis=0)))
         da = np.abs(run["action"][0] - original["action"][0]).max()
-        rate = run["success"].mean()
-        print(f"{label:<44} {rate:7.3f}  {same:>6}/{episodes}  {traj:>8}/{episodes}  {da:.1e}")
+        print(
+            f"{label:<44} {run['success'].mean():7.3f}  {same['success']:>6}/{episodes}     "
+            f"{run['reached'].mean():7.3f}  {same['reached']:>6}/{episodes}     "
+            f"{traj:>8}/{episodes}  {da:.1e}"
+        )
 
 
 def main() -> int:

@@ -42,6 +42,7 @@ import numpy as np
 
 from popsan_jax.errors import UserError
 from popsan_jax.networks import actor_variables, make_actor
+from popsan_jax.rollout import EPISODE_END_METRICS
 from popsan_jax.snn.encoder import ENCODER_THRESHOLD
 from popsan_jax.snn.ops import spiking_layer_names
 from popsan_jax.training.checkpoint import LoadedRun, load_run
@@ -292,12 +293,14 @@ def host_episodes(
 
     Returns:
       ``obs [S, N, O]``, ``action [S, N, A]``, ``alive [S, N]`` (bool: the step counts) and
-      ``success [N]``: the env's ``success`` metric at each episode's last step, as in
-      popsan_jax.rollout (for ``franka_pick``: pick-and-hold, not the ``reached`` latch).
+      ``success``, ``reached``, ``hold_time`` ``[N]``: the env's metrics at each episode's last
+      step, as in popsan_jax.rollout (``franka_pick``: ``success`` is pick-and-hold,
+      ``reached`` PixMC's latch).
     """
     reset, step = env_fns
     state = reset(jax.random.split(jax.random.PRNGKey(seed), num_episodes))
-    alive, success = np.ones(num_episodes, bool), np.zeros(num_episodes, np.float32)
+    alive = np.ones(num_episodes, bool)
+    end = {k: np.zeros(num_episodes, np.float32) for k in EPISODE_END_METRICS}
     obs_log, act_log, alive_log = [], [], []
     for _ in range(steps):
         obs = np.asarray(state.obs)
@@ -307,11 +310,12 @@ def host_episodes(
         act_log.append(action)
         alive_log.append(alive.copy())
         state = step(state, jnp.asarray(action))
-        success = np.where(alive, np.asarray(state.metrics["success"], np.float32), success)
+        for k, value in end.items():
+            end[k] = np.where(alive, np.asarray(state.metrics[k], np.float32), value)
         alive = alive & (np.asarray(state.done) == 0)
     return dict(
         obs=np.stack(obs_log),
         action=np.stack(act_log),
         alive=np.stack(alive_log),
-        success=success,
+        **end,
     )
