@@ -38,12 +38,12 @@ def legacy_overrides(name: str, revision: int) -> dict[str, Any]:
     if name not in _ENVS:
         raise EnvConfigError(f"unknown env {name!r}; available: {', '.join(list_environments())}")
     env_cls = _ENVS[name]
-    current = getattr(env_cls, "revision", 1)
+    current = env_cls.revision
     if not 1 <= revision <= current:
         raise EnvConfigError(f"env {name!r} has revisions 1..{current}, not {revision}")
     merged: dict[str, Any] = {}
     for r in range(current - 1, revision - 1, -1):  # newest first, so older values win
-        merged.update(getattr(env_cls, "legacy_overrides", {}).get(r, {}))
+        merged.update(env_cls.legacy_overrides.get(r, {}))
     return merged
 
 

@@ -198,7 +198,7 @@ class FrankaPick(PandaEnv):
         data = self._initial_data(q, qpos=qpos)
         zeros = jnp.zeros(9)
         terms = self._terms(data, zeros)
-        metrics = dict(terms, **episode_metrics(data.userdata, 0.0, 1, self.dt))
+        metrics = dict(terms, **episode_metrics(data.userdata, 0.0, self._hold_steps, self.dt))
         obs = self._obs(data)
         info = self._info(data, rng)
         reward = self._reward(terms)

@@ -104,7 +104,7 @@ class FrankaReach(PandaEnv):
         # The target lives in the mocap body, so Brax's auto-reset restores it with the data.
         data = self._initial_data(q, mocap_pos=target[None].astype(jnp.float32))
         terms = self._terms(data, jnp.zeros(9))
-        metrics = dict(terms, **episode_metrics(data.userdata, 0.0, 1, self.dt))
+        metrics = dict(terms, **episode_metrics(data.userdata, 0.0, self._hold_steps, self.dt))
         return State(
             data,
             self._obs(data),

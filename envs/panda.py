@@ -122,6 +122,10 @@ class PandaEnv(Env):
     ``reset`` and ``step``."""
 
     scene: str = ""
+    # The env's revision and, per earlier revision, the config overrides that restore it
+    # (envs.legacy_overrides merges them for run configs saved by an earlier version).
+    revision: int = 1
+    legacy_overrides: dict[int, dict[str, Any]] = {}
 
     def __init__(self, config: ml_collections.ConfigDict):
         self._config = config
