@@ -260,18 +260,46 @@ PRESETS: dict[str, dict[str, Any]] = {
     ),
 }
 
-# Per-backend defaults: a CPU run starts training within about a minute and shows progress;
-# accelerators scale to thousands of envs as MuJoCo Playground does.
+# The default recipe (docs/results.md, "Pick-and-hold"): what `python train.py --env
+# franka_pick` runs on a CPU, for both actors. Small minibatches (16 of 128 sequences) give
+# twice the gradient steps per sample of 8 of 256 at the same FLOPs; the actor lr 1e-3 decays to
+# 0 over the run (cosine), so the final checkpoint is the settled one. Evaluations use 256
+# episodes, so a 90 % figure has a 95 % CI of about +-4 points.
+CPU_RECIPE: dict[str, Any] = dict(
+    num_envs=512,
+    batch_size=128,
+    num_minibatches=16,
+    unroll_length=10,
+    num_updates_per_batch=4,
+    actor_lr=1e-3,
+    critic_lr=1e-3,
+    lr_schedule="cosine",
+    entropy_cost=1e-3,
+    total_env_steps=6_000_000,
+    num_evals=24,
+    num_eval_envs=256,
+)
+# The rule that scales the recipe to an accelerator's thousands of envs.
+ACCELERATOR_SCALE = 4
+
+
+def scale_recipe(recipe: dict[str, Any], factor: int) -> dict[str, Any]:
+    """The recipe with ``factor`` times the envs, minibatch size and env steps.
+
+    Minibatch count, epochs, unroll length, learning rates and schedule stay, so the run makes
+    the same number of gradient updates in the same order, each on ``factor`` times the
+    sequences (a less noisy gradient; the lr is not scaled). Evaluations keep their cadence.
+    """
+    scaled = dict(recipe)
+    for key in ("num_envs", "batch_size", "total_env_steps"):
+        scaled[key] = recipe[key] * factor
+    return scaled
+
+
+# Per-backend defaults: the CPU recipe on a CPU; accelerators run it scaled to 2048 envs.
 BACKEND_DEFAULTS: dict[str, dict[str, Any]] = {
-    "cpu": dict(num_envs=256, batch_size=256, num_minibatches=8, total_env_steps=3_000_000),
-    "gpu": dict(
-        num_envs=2048,
-        batch_size=512,
-        num_minibatches=32,
-        num_updates_per_batch=8,
-        total_env_steps=50_000_000,
-        num_eval_envs=256,
-    ),
+    "cpu": dict(CPU_RECIPE),
+    "gpu": scale_recipe(CPU_RECIPE, ACCELERATOR_SCALE),
 }
 BACKEND_DEFAULTS["tpu"] = BACKEND_DEFAULTS["gpu"]
 

@@ -42,10 +42,10 @@ def test_derived_sizes_hand_computed():
 
 def test_precedence_backend_then_preset_then_flags():
     cpu = resolve_config(None, "cpu")
-    assert cpu.num_envs == 256 and cpu.actor == "popsan"
+    assert cpu.num_envs == 512 and cpu.actor == "popsan"
     assert cpu.actor_kwargs == POPSAN_DEFAULTS
     gpu = resolve_config(None, "gpu")
-    assert gpu.num_envs >= 1024
+    assert gpu.num_envs >= 2048
     smoke = resolve_config("smoke", "gpu")
     assert smoke.num_envs == PRESETS["smoke"]["num_envs"]
     flagged = resolve_config("smoke", "cpu", {"num_envs": 64, "seed": None}, {"timesteps": 3})
@@ -54,6 +54,23 @@ def test_precedence_backend_then_preset_then_flags():
     assert flagged.actor_kwargs["hidden_sizes"] == (256, 256)
     mlp = resolve_config(None, "cpu", {"actor": "mlp"}, {"hidden_sizes": (32, 32)})
     assert mlp.actor_kwargs == {"hidden_sizes": (32, 32)}
+
+
+def test_accelerator_defaults_scale_the_cpu_recipe():
+    # The GPU run makes the CPU recipe's gradient updates (same count per run, same minibatches
+    # and epochs per iteration), each on 4x the sequences, and evaluates at the same fractions.
+    cpu, gpu = resolve_config(None, "cpu"), resolve_config(None, "gpu")
+    assert gpu.num_envs == 4 * cpu.num_envs == 2048
+    assert gpu.num_iterations == cpu.num_iterations
+    updates = [c.num_iterations * c.num_minibatches * c.num_updates_per_batch for c in (cpu, gpu)]
+    assert updates[0] == updates[1]
+    assert (
+        gpu.batch_size == 4 * cpu.batch_size
+        and gpu.unrolls_per_iteration == cpu.unrolls_per_iteration
+    )
+    assert gpu.eval_interval == cpu.eval_interval
+    same = ("actor_lr", "critic_lr", "lr_schedule", "entropy_cost", "num_eval_envs")
+    assert all(getattr(cpu, k) == getattr(gpu, k) for k in same)
 
 
 def test_every_preset_and_backend_default_is_valid():
