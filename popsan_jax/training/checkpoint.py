@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -39,6 +40,29 @@ from popsan_jax.errors import CheckpointError, ConfigError
 from popsan_jax.io import write_json
 from popsan_jax.training.iteration import init_training_state
 from popsan_jax.training.setup import build_networks, make_env, make_optimizer
+
+# The only checkpoint directory names the project writes (save_checkpoint).
+CHECKPOINT_NAME = re.compile(r"step_\d{12}")
+
+
+def contained(root: str | os.PathLike, name: Any, what: str = "checkpoint") -> Path:
+    """``root / name`` for a checkpoint directory name read from ``index.json``.
+
+    ``name`` must be the project's own pattern (``step_`` + 12 digits) and the path must
+    resolve (links followed) directly inside ``root``; otherwise CheckpointError.
+    """
+    root = Path(root)
+    if not isinstance(name, str) or not CHECKPOINT_NAME.fullmatch(name):
+        raise CheckpointError(
+            f"{what} directory {name!r} in {root / 'index.json'} is not a checkpoint name "
+            f"(step_ and 12 digits); the index was altered"
+        )
+    path = root / name
+    real = path.resolve()
+    if real.parent != root.resolve():
+        raise CheckpointError(f"{what} {path} resolves outside {root} (to {real}); refused")
+    return path
+
 
 INDEX = "index.json"
 CONFIG = "config.json"
@@ -107,7 +131,11 @@ def save_checkpoint(
     _write_index(run_dir, {"checkpoints": kept, "last": step, "best": best["step"]})
     for e in entries:
         if e not in kept:
-            shutil.rmtree(root / e["dir"], ignore_errors=True)
+            try:
+                doomed = contained(root, e["dir"], "pruned checkpoint")
+            except CheckpointError:
+                continue  # never delete outside checkpoints/; the entry is dropped anyway
+            shutil.rmtree(doomed, ignore_errors=True)
     return root / name
 
 
@@ -131,7 +159,7 @@ def restore_checkpoint(
     """Restore ``(state, key, manifest entry)`` into the structure of ``template`` (a fresh
     TrainingState from the same config)."""
     entry = _entry(read_index(run_dir), which)
-    path = checkpoint_dir(run_dir) / entry["dir"]
+    path = contained(checkpoint_dir(run_dir), entry.get("dir"))
     target = {"state": template, "key": jax.random.PRNGKey(0)}
     abstract = jax.tree.map(lambda x: ocp.utils.to_shape_dtype_struct(jnp.asarray(x)), target)
     try:

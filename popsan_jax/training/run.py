@@ -3,6 +3,7 @@ is written, and what an interrupted run leaves behind."""
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -10,6 +11,19 @@ from typing import Any
 from popsan_jax.config import RunConfig, resolve_config
 from popsan_jax.errors import CheckpointError, ConfigError
 from popsan_jax.training.checkpoint import CONFIG, read_index
+
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+=,-]*")
+
+
+def check_name(name: str) -> str:
+    """``name`` if it is a plain directory name, else ConfigError (one line)."""
+    if not isinstance(name, str) or len(name) > 200 or not _NAME.fullmatch(name):
+        raise ConfigError(
+            f"--name must be a plain directory name (letters, digits, _ . + = , -; no '/', "
+            f"'..' or absolute path), got {name!r}"
+        )
+    return name
+
 
 RESUMABLE = {"total_env_steps"}  # the only field a resumed run may change
 
@@ -53,7 +67,8 @@ def new_run(
     ``name`` defaults to ``<env>-<actor>-<timestamp>``; an existing directory raises ConfigError.
     """
     config = resolve_config(preset, backend, given, actor_given)
-    name = name or f"{config.env}-{config.actor}-{time.strftime('%Y%m%d-%H%M%S')}"
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    name = check_name(name) if name else f"{config.env}-{config.actor}-{stamp}"
     run_dir = Path(runs_dir) / name
     if run_dir.exists():
         raise ConfigError(f"run directory {run_dir} exists; use --resume or a new --name")
