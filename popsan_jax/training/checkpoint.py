@@ -22,6 +22,7 @@ raises :class:`popsan_jax.errors.CheckpointError`.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 import re
@@ -32,6 +33,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import orbax.checkpoint as ocp
 from brax.training.agents.ppo import networks as ppo_networks
 
@@ -66,6 +68,78 @@ def contained(root: str | os.PathLike, name: Any, what: str = "checkpoint") -> P
 
 INDEX = "index.json"
 CONFIG = "config.json"
+
+
+def checkpoint_digest(path: str | os.PathLike) -> str:
+    """``sha256:<hex>`` over every file under ``path`` (relative names and contents, in sorted
+    order); links are not followed, and a link or special file is an error."""
+    root = Path(path)
+    h = hashlib.sha256()
+    files = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        dirnames.sort()
+        for name in dirnames + filenames:
+            p = Path(dirpath, name)
+            if p.is_symlink():
+                raise CheckpointError(f"checkpoint {root} contains a link {p}; refused")
+        files.extend(Path(dirpath, name) for name in filenames)
+    for p in sorted(files, key=lambda q: q.relative_to(root).as_posix()):
+        rel = p.relative_to(root).as_posix().encode()
+        h.update(len(rel).to_bytes(8, "little") + rel)
+        with open(p, "rb") as f:
+            h.update(os.fstat(f.fileno()).st_size.to_bytes(8, "little"))
+            for block in iter(lambda f=f: f.read(1 << 20), b""):
+                h.update(block)
+    return "sha256:" + h.hexdigest()
+
+
+def _intact_others(run_dir: Path, index: dict[str, Any], step: int) -> list[int]:
+    """Steps of the other listed checkpoints whose digest matches (unverifiable ones too)."""
+    good = []
+    for e in index["checkpoints"]:
+        if e["step"] == step:
+            continue
+        try:
+            path = contained(checkpoint_dir(run_dir), e["dir"])
+            if "digest" not in e or checkpoint_digest(path) == e["digest"]:
+                good.append(e["step"])
+        except (OSError, CheckpointError):
+            continue
+    return good
+
+
+def verify_checkpoint(
+    run_dir: str | os.PathLike, index: dict[str, Any], entry: dict[str, Any]
+) -> bool:
+    """Check ``entry``'s files against its manifest digest; False when it has none (a manifest
+    written before digests: unverified). A mismatch raises one CheckpointError line naming the
+    checkpoint and the intact alternatives."""
+    if "digest" not in entry:
+        return False
+    path = contained(checkpoint_dir(run_dir), entry["dir"])
+    try:
+        actual = checkpoint_digest(path)
+    except OSError as e:
+        actual = f"unreadable ({e.strerror or e})"
+    if actual == entry["digest"]:
+        return True
+    others = _intact_others(Path(run_dir), index, entry["step"])
+    if others:
+        best = " or --best" if index["best"] in others else ""
+        hint = "intact: " + ", ".join(f"--step {s}" for s in others) + best
+    else:
+        hint = "no other checkpoint is intact"
+    raise CheckpointError(
+        f"checkpoint {path} is damaged: its files do not match the digest in {INDEX}; {hint}"
+    )
+
+
+def _check_finite(tree: Any, path: Path) -> None:
+    for leaf_path, leaf in jax.tree_util.tree_leaves_with_path(tree):
+        leaf = np.asarray(leaf)
+        if np.issubdtype(leaf.dtype, np.floating) and not np.all(np.isfinite(leaf)):
+            name = jax.tree_util.keystr(leaf_path)
+            raise CheckpointError(f"checkpoint {path} holds non-finite values in {name}; refused")
 
 
 def checkpoint_dir(run_dir: str | os.PathLike) -> Path:
@@ -120,7 +194,13 @@ def save_checkpoint(
         ckptr.wait_until_finished()
     entries = [e for e in index["checkpoints"] if e["step"] != step]
     entries.append(
-        dict(step=step, eval_index=eval_index, success_rate=float(success_rate), dir=name)
+        dict(
+            step=step,
+            eval_index=eval_index,
+            success_rate=float(success_rate),
+            dir=name,
+            digest=checkpoint_digest(root / name),
+        )
     )
     best = max(entries, key=lambda e: (e["success_rate"], e["step"]))
     kept = [
@@ -158,8 +238,10 @@ def restore_checkpoint(
 ) -> tuple[Any, jax.Array, dict[str, Any]]:
     """Restore ``(state, key, manifest entry)`` into the structure of ``template`` (a fresh
     TrainingState from the same config)."""
-    entry = _entry(read_index(run_dir), which)
+    index = read_index(run_dir)
+    entry = _entry(index, which)
     path = contained(checkpoint_dir(run_dir), entry.get("dir"))
+    verify_checkpoint(run_dir, index, entry)  # old manifests without digests load unverified
     target = {"state": template, "key": jax.random.PRNGKey(0)}
     abstract = jax.tree.map(lambda x: ocp.utils.to_shape_dtype_struct(jnp.asarray(x)), target)
     try:
@@ -168,6 +250,7 @@ def restore_checkpoint(
     except Exception as e:  # Orbax raises many types for damaged or mismatched data
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise CheckpointError(f"cannot restore checkpoint {path}: {msg[:300]}") from e
+    _check_finite(restored, path)
     return restored["state"], restored["key"], entry
 
 
