@@ -1,13 +1,17 @@
-"""SHA-256 digests per checkpoint in index.json, checked on restore; old manifests load
-unverified; restored arrays must be finite (ported from harden, issue 22)."""
+"""Verified checkpoints (issue 22, items 2 and 6): a SHA-256 digest per checkpoint in index.json,
+checked on restore (old manifests load unverified); restored arrays must be finite; an index off
+its schema and a full disk are one line each."""
 
 from __future__ import annotations
 
 import json
+import os
+import re
 
 import flax.struct
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 from popsan_jax.errors import CheckpointError
@@ -57,3 +61,65 @@ def test_non_finite_arrays_refused(tmp_path):
     checkpoint.save_checkpoint(tmp_path, state, jax.random.PRNGKey(0), 1, 0.0, 1)
     with pytest.raises(CheckpointError, match="non-finite"):
         checkpoint.restore_checkpoint(tmp_path, state, "last")
+
+
+def test_random_bytes_in_the_largest_data_file_are_caught(tmp_path):
+    """The probe of issue 22: 64 random bytes over the largest file changed weights silently."""
+    state = _S(w=jnp.linspace(0.0, 1.0, 4096), env_steps=jnp.int32(1))
+    path = checkpoint.save_checkpoint(tmp_path, state, jax.random.PRNGKey(0), 1, 0.0, 1)
+    f = _data_file(path)
+    data = bytearray(f.read_bytes())
+    at = len(data) // 2
+    data[at : at + 64] = np.random.default_rng(0).bytes(64)
+    f.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match="is damaged.*no other checkpoint is intact"):
+        checkpoint.restore_checkpoint(tmp_path, state, "last")
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda i: i["checkpoints"][0].update(dir=5), "dir must be a string"),
+        (lambda i: i.update(checkpoints="xyz"), "'checkpoints' must be a list"),
+        (lambda i: i["checkpoints"][0].update(step="1"), "step must be an integer"),
+        (lambda i: i.update(best=7), "'best' (7) is not a listed checkpoint step"),
+        (lambda i: i["checkpoints"][0].update(digest="md5:x"), "digest must be 'sha256:'"),
+    ],
+)
+def test_index_off_its_schema_is_one_line(tmp_path, edit, match):
+    state = _S(w=jnp.ones(2), env_steps=jnp.int32(1))
+    checkpoint.save_checkpoint(tmp_path, state, jax.random.PRNGKey(0), 1, 0.0, 1)
+    p = tmp_path / "checkpoints" / "index.json"
+    index = json.loads(p.read_text())
+    edit(index)
+    p.write_text(json.dumps(index))
+    for read in (checkpoint.read_index, lambda r: checkpoint.restore_checkpoint(r, state)):
+        with pytest.raises(CheckpointError, match=re.escape(match)) as err:
+            read(tmp_path)
+        assert "\n" not in str(err.value)
+    p.write_bytes(bytes(range(128, 256)))  # not even UTF-8
+    with pytest.raises(CheckpointError, match="corrupt checkpoint index"):
+        checkpoint.read_index(tmp_path)
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounting a tmpfs needs root")
+@pytest.mark.parametrize("precheck", [True, False], ids=["free-space-check", "orbax-fails"])
+def test_disk_full_is_one_line_naming_the_last_good_checkpoint(tmp_path, monkeypatch, precheck):
+    from _run_fixtures import tmpfs
+
+    if not precheck:  # the disk fills during Orbax's own write
+        monkeypatch.setattr(checkpoint, "_check_free_space", lambda *a: None, raising=False)
+    small = _S(w=jnp.ones(4), env_steps=jnp.int32(1))
+    noise = jax.random.normal(jax.random.PRNGKey(1), (2_000_000,))  # 8 MB that do not compress
+    big = _S(w=noise, env_steps=jnp.int32(2))  # on a 4 MB disk
+    with tmpfs(tmp_path / "full", size="4m") as run:
+        checkpoint.save_checkpoint(run, small, jax.random.PRNGKey(0), 1, 0.0, 1)
+        with pytest.raises(CheckpointError) as err:
+            checkpoint.save_checkpoint(run, big, jax.random.PRNGKey(0), 2, 0.0, 1)
+        line = str(err.value)
+        assert "\n" not in line and "No space left on device" in line, line
+        assert "the last good checkpoint is step 1" in line, line
+        assert checkpoint.read_index(run)["last"] == 1
+        left = sorted(p.name for p in (run / "checkpoints").iterdir())
+        assert left == ["index.json", "step_000000000001"]  # no half-written checkpoint
+        checkpoint.restore_checkpoint(run, small, "last")
