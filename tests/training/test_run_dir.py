@@ -45,6 +45,20 @@ def test_check_name_refuses_non_plain(name):
         check_name(name)
 
 
+@pytest.mark.parametrize("name", ["a/b", "../x", "/tmp/abs-run"])
+def test_train_py_refuses_a_name_that_is_not_plain(name, tmp_path, capsys, monkeypatch):
+    from popsan_jax.training import loop
+
+    monkeypatch.setattr(loop, "build_trainer", lambda *a: pytest.fail("went on to train"))
+    runs = tmp_path / "runs"
+    assert (
+        load_script("train").main(["--preset", "smoke", "--runs-dir", str(runs), "--name", name])
+        == 2
+    )
+    assert "error: --name must be a plain directory name" in capsys.readouterr().err
+    assert not runs.exists() and not (tmp_path / "x").exists()
+
+
 @pytest.mark.parametrize("name", ["run1", "pick-popsan-s0", "a.b+c=d,e_f"])
 def test_check_name_accepts_plain(name):
     assert check_name(name) == name
@@ -166,21 +180,26 @@ original = StandardCheckpointHandler.async_save  # once per checkpoint, sync or 
 calls = []
 async def save_then_signal(self, *args, **kwargs):
     calls.append(1)
-    if len(calls) == 2:  # in the middle of the second checkpoint write
+    if len(calls) == 1:  # in the middle of the resumed run's first checkpoint write
         os.kill(os.getpid(), {signum})
     return await original(self, *args, **kwargs)
 StandardCheckpointHandler.async_save = save_then_signal
-sys.exit(load_script("train").main(["--resume", {run!r}, "--no-progress"]))
+argv = ["--resume", {run!r}, "--total-env-steps", {total!r}, "--no-progress"]
+sys.exit(load_script("train").main(argv))
 """
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
-def test_signal_during_checkpoint_write_finishes_it_and_exits_130(tmp_path, signum):
-    run = tmp_path / "run"
-    run.mkdir()  # a run with its config and no checkpoint yet: trained from step 0
-    tiny_config(total_env_steps=4 * STEPS, num_evals=4).to_json(run / "config.json")
-    code = _SIGNAL_CHILD.format(tests=str(ROOT / "tests"), signum=int(signum), run=str(run))
+def test_signal_during_checkpoint_write_finishes_it_and_exits_130(
+    finished_toy_run, tmp_path, signum
+):
+    # Resumed to 6 iterations with 2 evaluations: checkpoints after iterations 3 and 6.
+    run = copy_run(finished_toy_run, tmp_path / "run")
+    total = str(6 * STEPS)
+    code = _SIGNAL_CHILD.format(
+        tests=str(ROOT / "tests"), signum=int(signum), run=str(run), total=total
+    )
     t0 = time.monotonic()
     proc = subprocess.run(
         [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=240
@@ -190,8 +209,8 @@ def test_signal_during_checkpoint_write_finishes_it_and_exits_130(tmp_path, sign
     assert proc.stderr.count("interrupted") == 1, proc.stderr[-3000:]
     assert time.monotonic() - t0 < 200
     index = checkpoint.read_index(run)
-    assert index["last"] == 2 * STEPS  # the write under way when the signal came is complete
-    assert checkpoint.load_run(run, environment=PointPick()).step == 2 * STEPS
+    assert index["last"] == 3 * STEPS  # the write under way when the signal came is complete
+    assert checkpoint.load_run(run, environment=PointPick()).step == 3 * STEPS
     assert not (run / "lock").exists()
 
 
