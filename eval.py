@@ -62,6 +62,9 @@ def main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:
             print("\ninterrupted", file=sys.stderr)
             return 130
+        except OSError as e:  # e.g. the disk filled while a report was written
+            print(f"error: cannot write {e.filename or 'an output'}: {e.strerror}", file=sys.stderr)
+            return 2
     return 0
 
 

@@ -50,6 +50,14 @@ def main(argv: list[str] | None = None) -> int:
 
             print(f"\n{interrupted_message(run_dir)}", file=sys.stderr)
             return 130
+    if result.finished:  # resumed a run that had already reached its total
+        steps = int(result.state.env_steps)
+        print(
+            f"done: {run_dir} already finished at {steps} env steps; to train further: "
+            f"python train.py --resume {run_dir} --total-env-steps N (N > {steps})",
+            file=sys.stderr,
+        )
+        return 0
     final = result.last_eval or {}
     print(
         f"done: {int(result.state.env_steps)} env steps, success rate "

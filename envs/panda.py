@@ -84,23 +84,64 @@ def apply_overrides(
                         f"unknown key {key}.{sub!r} for env {env_name!r}; "
                         f"known: {sorted(current.keys())}"
                     )
-                current[sub] = type(current[sub])(sub_value)
+                current[sub] = _coerce(current[sub], sub_value, f"{key}.{sub}", env_name)
         else:
-            try:
-                config[key] = type(current)(value)
-            except (TypeError, ValueError) as exc:
-                raise EnvConfigError(f"bad value {value!r} for {key!r} of {env_name!r}") from exc
+            config[key] = _coerce(current, value, key, env_name)
+    for key in ("ctrl_dt", "sim_dt"):
+        if not config[key] > 0:
+            raise EnvConfigError(f"{key} must be > 0, got {config[key]}")
     n_sub = config.ctrl_dt / config.sim_dt
-    if config.sim_dt <= 0 or abs(n_sub - round(n_sub)) > 1e-6 or round(n_sub) < 1:
+    if abs(n_sub - round(n_sub)) > 1e-6 or round(n_sub) < 1:
         raise EnvConfigError(
             f"ctrl_dt ({config.ctrl_dt}) must be a positive multiple of sim_dt ({config.sim_dt})"
         )
+    for key in ("iterations", "ls_iterations"):
+        if config[key] < 1:
+            raise EnvConfigError(f"{key} must be >= 1, got {config[key]}")
+    if config.init_joint_noise < 0:
+        raise EnvConfigError(f"init_joint_noise must be >= 0, got {config.init_joint_noise}")
     if not config.action_scale > 0:
         raise EnvConfigError(f"action_scale must be > 0, got {config.action_scale}")
     if config.episode_length < 1:
         raise EnvConfigError(f"episode_length must be >= 1, got {config.episode_length}")
     config.lock()
     return config
+
+
+def _coerce(current: Any, value: Any, key: str, env_name: str) -> Any:
+    """``value`` as the type of the default ``current``: a number stays a finite number (an int
+    field takes integers only), a string a string, a tuple a tuple of the same length, element
+    by element (``pad_solimp``, ``target_low``). Anything else is an EnvConfigError."""
+
+    def bad(why: str) -> EnvConfigError:
+        return EnvConfigError(f"bad value {value!r} for {key!r} of {env_name!r}: {why}")
+
+    if isinstance(current, bool):
+        if not isinstance(value, bool):
+            raise bad("expected true or false")
+        return value
+    if isinstance(current, int | float):
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise bad("expected a number")
+        if not np.isfinite(value):
+            raise bad("expected a finite number")
+        if isinstance(current, int):
+            if value != int(value):
+                raise bad("expected an integer")
+            return int(value)
+        return float(value)
+    if isinstance(current, str):
+        if not isinstance(value, str):
+            raise bad("expected a string")
+        return value
+    if isinstance(current, tuple | list):
+        if not isinstance(value, tuple | list) or len(value) != len(current):
+            raise bad(f"expected a list of {len(current)} like {list(current)}")
+        return type(current)(
+            _coerce(c, v, f"{key}[{i}]", env_name)
+            for i, (c, v) in enumerate(zip(current, value, strict=True))
+        )
+    raise bad(f"cannot override a {type(current).__name__}")
 
 
 def load_model(scene: str, config: ml_collections.ConfigDict) -> mujoco.MjModel:

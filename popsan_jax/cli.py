@@ -30,6 +30,13 @@ ACTOR_FLAG_HELP = {
 assert set(ACTOR_FLAG_HELP) == set(POPSAN_DEFAULTS), "one help line per PopSAN shape key"
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line ``error: ...`` with exit 2, as UserErrors are."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        self.exit(2, f"error: {message} (see {self.prog} --help)\n")
+
+
 def env_override(text: str) -> tuple[str, object]:
     """``KEY=VALUE`` -> ``(key, value)``; VALUE is parsed as JSON when it is JSON, else a string."""
     key, sep, value = text.partition("=")
@@ -92,9 +99,7 @@ def config_flags() -> dict[str, tuple[Callable[[str], Any], str]]:
 
 def train_parser(description: str | None = None) -> argparse.ArgumentParser:
     """train.py's flags; config flags default to None ("not given", so presets show through)."""
-    p = argparse.ArgumentParser(
-        description=description, formatter_class=argparse.RawTextHelpFormatter
-    )
+    p = OneLineParser(description=description, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--preset", help=" | ".join(PRESETS))
     p.add_argument("--name", help="run directory name (default <env>-<actor>-<timestamp>)")
     p.add_argument("--runs-dir", default="runs", help="parent of run directories")
@@ -144,9 +149,7 @@ def timesteps_list(text: str) -> tuple[int, ...]:
 
 def eval_parser(description: str | None = None) -> argparse.ArgumentParser:
     """eval.py's flags (see :class:`popsan_jax.analysis.report.EvalOptions`)."""
-    p = argparse.ArgumentParser(
-        description=description, formatter_class=argparse.RawTextHelpFormatter
-    )
+    p = OneLineParser(description=description, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("run_dir", nargs="?", help="run directory with config.json and checkpoints/")
     which = p.add_mutually_exclusive_group()
     which.add_argument("--best", action="store_true", help="best checkpoint by success rate")

@@ -16,11 +16,13 @@ import dataclasses
 import json
 import math
 import os
+import typing
 from pathlib import Path
 from typing import Any
 
 from popsan_jax.errors import ConfigError
 from popsan_jax.io import write_json
+from popsan_jax.schema import check_config
 
 ACTORS = ("popsan", "mlp")
 CURRENT_ENV_REVISION = 2  # franka_pick/franka_reach revision 2: the grasp that holds
@@ -187,11 +189,14 @@ class RunConfig:
         write_json(path, self.to_dict())
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> RunConfig:
+    def from_dict(cls, data: dict[str, Any], where: str = "") -> RunConfig:
+        """The config of ``data``; unknown keys and wrong types (popsan_jax/schema.py) raise
+        ConfigError, its message prefixed with ``where`` (the file read)."""
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - names)
         if unknown:
-            raise ConfigError(f"unknown config keys: {', '.join(unknown)}")
+            raise ConfigError(f"{where}unknown config keys: {', '.join(unknown)}")
+        check_config(data, typing.get_type_hints(cls), where)
         data = dict(data)
         if "critic_hidden_sizes" in data:
             data["critic_hidden_sizes"] = tuple(data["critic_hidden_sizes"])
@@ -204,12 +209,12 @@ class RunConfig:
         """Read ``config.json``; a missing or unreadable file raises ConfigError."""
         try:
             data = json.loads(Path(path).read_text())
-        except (OSError, json.JSONDecodeError) as e:
+        except (OSError, ValueError) as e:  # ValueError: bad JSON, or bytes that are not UTF-8
             raise ConfigError(f"cannot read run config {path}: {e}") from e
         if not isinstance(data, dict):
             raise ConfigError(f"run config {path} is not a JSON object")
         data.setdefault("env_revision", 1)  # written before env revisions existed
-        return cls.from_dict(data)
+        return cls.from_dict(data, f"{path}: ")
 
     def replace(self, **changes: Any) -> RunConfig:
         return dataclasses.replace(self, **changes)

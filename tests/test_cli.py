@@ -139,6 +139,7 @@ def test_train_py_stops_on_an_ignored_sigint_with_exit_130(tmp_path):
     finally:
         proc.kill()
     last = rest.strip().splitlines()[-1]
-    assert (
-        last == f"interrupted before the first checkpoint; {tmp_path / 'r'} has nothing to resume"
+    assert last == (
+        f"interrupted before the first checkpoint; train it again from step 0 with: "
+        f"python train.py --resume {tmp_path / 'r'}"
     )

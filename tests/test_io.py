@@ -41,3 +41,27 @@ def test_any_other_bad_line_is_damage(tmp_path, text, line):
     path.write_text(text)
     with pytest.raises(CheckpointError, match=rf"m.jsonl:{line} is not valid JSON"):
         io.read_jsonl(path)
+
+
+def test_bytes_that_are_not_utf8_are_one_line(tmp_path):
+    path = tmp_path / "m.jsonl"
+    path.write_bytes(bytes(range(128, 256)))
+    with pytest.raises(CheckpointError, match="cannot read"):
+        io.read_jsonl(path)
+
+
+def test_writability_checks(tmp_path):
+    from popsan_jax.errors import UserError
+    from popsan_jax.io import check_output_file, check_writable
+
+    check_writable(tmp_path / "not" / "yet")  # judged by its nearest existing parent
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    with pytest.raises(UserError, match="is a file, not a directory"):
+        check_writable(afile / "sub")
+    with pytest.raises(UserError, match="kernel filesystem"):
+        check_writable("/proc/self")
+    with pytest.raises(UserError, match="is a directory, not a file"):
+        check_output_file(tmp_path, "--out")
+    assert check_output_file(tmp_path / "new" / "f.png", "--out") == tmp_path / "new" / "f.png"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]  # nothing left behind

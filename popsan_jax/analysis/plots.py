@@ -16,8 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from popsan_jax.errors import CheckpointError
+from popsan_jax.errors import CheckpointError, UserError
 from popsan_jax.io import read_jsonl
+from popsan_jax.schema import check_metrics_record
 
 ACTOR_COLOURS = {"popsan": "tab:red", "mlp": "tab:blue"}
 CURVE_KEYS = (
@@ -116,11 +117,13 @@ def read_run_curves(run_dir: str | os.PathLike) -> RunCurves:
     if config.is_file():
         try:
             data = json.loads(config.read_text())
-        except (OSError, json.JSONDecodeError) as e:
+        except (OSError, ValueError) as e:  # ValueError: bad JSON, or bytes that are not UTF-8
             raise CheckpointError(f"cannot read {config}: {e}") from e
+        if not isinstance(data, dict):
+            raise CheckpointError(f"{config} is not a JSON object")
         actor = str(data.get("actor", "?"))
         revision = data.get("env_revision", 1)
-    rows = [r for r in read_jsonl(metrics) if r.get("kind") == "eval"]
+    rows = [r for r in read_jsonl(metrics, check_metrics_record) if r.get("kind") == "eval"]
     if not rows:
         raise CheckpointError(f"{metrics} has no eval lines to plot")
     rows.sort(key=lambda r: r["env_steps"])
@@ -179,7 +182,11 @@ def plot_compare(runs: Sequence[RunCurves], path: str | os.PathLike) -> Path:
 
 def _save(fig: Any, plt: Any, path: str | os.PathLike) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=110)
+    except OSError as e:  # a full disk or a folder taken away meanwhile
+        raise UserError(f"cannot write figure {path}: {e.strerror or e}") from e
+    finally:
+        plt.close(fig)
     return path

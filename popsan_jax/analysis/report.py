@@ -26,7 +26,7 @@ from popsan_jax.analysis.video import render_video
 from popsan_jax.cli import overrides_tag
 from popsan_jax.config import RunConfig
 from popsan_jax.errors import UserError
-from popsan_jax.io import write_json
+from popsan_jax.io import check_output_file, check_writable, write_json
 from popsan_jax.training.checkpoint import load_run
 
 FIGURE_SUFFIXES = (".png", ".pdf", ".svg")
@@ -113,6 +113,10 @@ def evaluate(
         raise UserError(f"--episodes must be >= 1, got {options.episodes}")
     ann_hidden = ann_hidden_sizes(options.ann_run)
     run_dir = Path(run_dir)
+    if run_dir.is_dir():  # the reports go into it: found read-only now, not after the work
+        check_writable(run_dir, "run directory")
+    if options.video:
+        check_output_file(options.video, "--video")
     if options.all_checkpoints:
         return rank_checkpoints(run_dir, options, environment, say)
     tag = evaluation.checkpoint_label(options.which) + options.suffix
@@ -182,13 +186,18 @@ def evaluate(
     if options.video:
         dt = float(getattr(loaded.env.config, "ctrl_dt", 0.02))
         qpos = episode["qpos"]
-        path, backend = render_video(
-            loaded.env.mj_model,
-            qpos,
-            options.video,
-            fps=1.0 / dt,
-            mocap_pos=episode.get("mocap_pos"),
-        )
+        try:
+            path, backend = render_video(
+                loaded.env.mj_model,
+                qpos,
+                options.video,
+                fps=1.0 / dt,
+                mocap_pos=episode.get("mocap_pos"),
+            )
+        except UserError as e:  # the finished evaluation's report is written all the same
+            report.update(video_error=str(e), wall_s=time.monotonic() - t0)
+            say(f"wrote {write_json(run_dir / f'eval_{tag}.json', report)}")
+            raise
         report["video"] = str(path)
         say(f"wrote {path} (episode {shown}, {outcome}, {len(qpos)} frames, {backend} GL)")
     report["wall_s"] = time.monotonic() - t0
@@ -258,6 +267,8 @@ def compare(runs: Sequence[str | Path], out: str | Path | None, say: Say = _quie
         raise UserError(
             f"--out is the figure's path ({', '.join(FIGURE_SUFFIXES)}); got {str(out)!r}"
         )
+    check_output_file(out, "--out")  # before the runs are read
+    check_output_file(out.with_suffix(".md"), "--out table")
     curves = [plots.read_run_curves(r) for r in runs]
     path = plots.plot_compare(curves, out)
     table = sample_efficiency_table(curves)

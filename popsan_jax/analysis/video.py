@@ -6,7 +6,9 @@ rendered in a fresh Python subprocess per backend attempt, with ``MUJOCO_GL`` an
 ``PYOPENGL_PLATFORM`` set before its import: EGL first (GPU machines), then OSMesa (CPU machines;
 Debian/Ubuntu: ``apt-get install -y libosmesa6``); a ``MUJOCO_GL`` already set by the user is
 tried first. A crashing GL driver only kills that subprocess. If no backend works,
-:class:`popsan_jax.errors.UserError` says so in one line.
+:class:`popsan_jax.errors.UserError` says so in one line; an output path that cannot be written
+is its own one-line error, checked before any backend is tried and again after they all fail
+(a worker that cannot write its file fails on every backend, which is no GL fault).
 
 The model travels as a MuJoCo binary (``mj_saveModel``) and the trajectory as ``.npy``; each frame
 sets ``qpos``, runs ``mj_forward`` and renders. imageio-ffmpeg supplies the ffmpeg binary.
@@ -25,6 +27,7 @@ import mujoco
 import numpy as np
 
 from popsan_jax.errors import UserError
+from popsan_jax.io import check_output_file
 
 GL_BACKENDS = ("egl", "osmesa")
 INSTALL_HINT = "for CPU rendering install OSMesa: apt-get install -y libosmesa6"
@@ -54,8 +57,11 @@ def render_video(
     qpos = np.asarray(qpos, dtype=np.float64)
     if qpos.ndim != 2 or qpos.shape[1] != mj_model.nq or qpos.shape[0] == 0:
         raise ValueError(f"qpos must be [T, {mj_model.nq}] with T > 0, got {qpos.shape}")
-    out_path = Path(out_path).resolve()
-    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path = check_output_file(Path(out_path).resolve(), "--video")
+    try:
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UserError(f"cannot create the --video folder {out_path.parent}: {e.strerror}") from e
     failures = []
     # A backend the user chose explicitly (e.g. MUJOCO_GL=glfw with a display) goes first.
     chosen = os.environ.get("MUJOCO_GL", "").strip().lower()
@@ -86,6 +92,7 @@ def render_video(
                 return out_path, backend
             lines = (proc.stderr or proc.stdout or f"exit {proc.returncode}").strip().splitlines()
             failures.append(f"{backend}: {lines[-1] if lines else proc.returncode}")
+    check_output_file(out_path, "--video")  # the path, not GL, when it went away meanwhile
     raise UserError(
         f"cannot render video, no GL backend works ({'; '.join(failures)}); {INSTALL_HINT}"
     )

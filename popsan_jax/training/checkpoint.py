@@ -21,27 +21,108 @@ raises :class:`popsan_jax.errors.CheckpointError`.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import errno
+import gc
+import hashlib
 import json
+import logging
 import os
+import re
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import orbax.checkpoint as ocp
 from brax.training.agents.ppo import networks as ppo_networks
 
 from popsan_jax.config import RunConfig
 from popsan_jax.errors import CheckpointError, ConfigError
 from popsan_jax.io import write_json
+from popsan_jax.schema import check_index
 from popsan_jax.training.iteration import init_training_state
+from popsan_jax.training.run_dir import checkpoint_name, contained, deferred_signals
 from popsan_jax.training.setup import build_networks, make_env, make_optimizer
 
 INDEX = "index.json"
 CONFIG = "config.json"
+
+
+def checkpoint_digest(path: str | os.PathLike) -> str:
+    """``sha256:<hex>`` over every file under ``path`` (relative names and contents, in sorted
+    order); links are not followed, and a link or special file is an error."""
+    root = Path(path)
+    h = hashlib.sha256()
+    files = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        dirnames.sort()
+        for name in dirnames + filenames:
+            p = Path(dirpath, name)
+            if p.is_symlink():
+                raise CheckpointError(f"checkpoint {root} contains a link {p}; refused")
+        files.extend(Path(dirpath, name) for name in filenames)
+    for p in sorted(files, key=lambda q: q.relative_to(root).as_posix()):
+        rel = p.relative_to(root).as_posix().encode()
+        h.update(len(rel).to_bytes(8, "little") + rel)
+        with open(p, "rb") as f:
+            h.update(os.fstat(f.fileno()).st_size.to_bytes(8, "little"))
+            for block in iter(lambda f=f: f.read(1 << 20), b""):
+                h.update(block)
+    return "sha256:" + h.hexdigest()
+
+
+def _intact_others(run_dir: Path, index: dict[str, Any], step: int) -> list[int]:
+    """Steps of the other listed checkpoints whose digest matches (unverifiable ones too)."""
+    good = []
+    for e in index["checkpoints"]:
+        if e["step"] == step:
+            continue
+        try:
+            path = contained(checkpoint_dir(run_dir), e["dir"])
+            if "digest" not in e or checkpoint_digest(path) == e["digest"]:
+                good.append(e["step"])
+        except (OSError, CheckpointError):
+            continue
+    return good
+
+
+def verify_checkpoint(
+    run_dir: str | os.PathLike, index: dict[str, Any], entry: dict[str, Any]
+) -> bool:
+    """Check ``entry``'s files against its manifest digest; False when it has none (a manifest
+    written before digests: unverified). A mismatch raises one CheckpointError line naming the
+    checkpoint and the intact alternatives."""
+    if "digest" not in entry:
+        return False
+    path = contained(checkpoint_dir(run_dir), entry["dir"])
+    try:
+        actual = checkpoint_digest(path)
+    except OSError as e:
+        actual = f"unreadable ({e.strerror or e})"
+    if actual == entry["digest"]:
+        return True
+    others = _intact_others(Path(run_dir), index, entry["step"])
+    if others:
+        best = " or --best" if index["best"] in others else ""
+        hint = "intact: " + ", ".join(f"--step {s}" for s in others) + best
+    else:
+        hint = "no other checkpoint is intact"
+    raise CheckpointError(
+        f"checkpoint {path} is damaged: its files do not match the digest in {INDEX}; {hint}"
+    )
+
+
+def _check_finite(tree: Any, path: Path) -> None:
+    for leaf_path, leaf in jax.tree_util.tree_leaves_with_path(tree):
+        leaf = np.asarray(leaf)
+        if np.issubdtype(leaf.dtype, np.floating) and not np.all(np.isfinite(leaf)):
+            name = jax.tree_util.keystr(leaf_path)
+            raise CheckpointError(f"checkpoint {path} holds non-finite values in {name}; refused")
 
 
 def checkpoint_dir(run_dir: str | os.PathLike) -> Path:
@@ -49,21 +130,27 @@ def checkpoint_dir(run_dir: str | os.PathLike) -> Path:
 
 
 def read_index(run_dir: str | os.PathLike) -> dict[str, Any]:
-    """The manifest ``{"checkpoints": [{"step", "eval_index", "success_rate", "dir"}], "last",
-    "best"}``; raises CheckpointError when missing or unreadable."""
+    """The manifest ``{"checkpoints": [{"step", "eval_index", "success_rate", "dir", "digest"}],
+    "last", "best"}``; raises CheckpointError when missing, unreadable or off its schema."""
     path = checkpoint_dir(run_dir) / INDEX
     if not Path(run_dir).is_dir():
         raise CheckpointError(f"run directory {run_dir} does not exist")
     try:
         index = json.loads(path.read_text())
-        entries = index["checkpoints"]
-        if not entries or index["last"] is None:
-            raise ValueError("no checkpoints listed")
     except FileNotFoundError as e:
         raise CheckpointError(f"no checkpoint in {run_dir} (missing {path})") from e
-    except (OSError, ValueError, KeyError, TypeError) as e:
+    except (OSError, ValueError) as e:  # ValueError: bad JSON, or bytes that are not UTF-8
         raise CheckpointError(f"corrupt checkpoint index {path}: {e}") from e
-    return index
+    return check_index(index, path)  # popsan_jax/schema.py
+
+
+def has_checkpoint(run_dir: str | os.PathLike) -> bool:
+    """Whether ``run_dir`` has a readable manifest listing a checkpoint."""
+    try:
+        read_index(run_dir)
+    except CheckpointError:
+        return False
+    return True
 
 
 def _write_index(run_dir: Path, index: dict[str, Any]) -> None:
@@ -79,36 +166,122 @@ def save_checkpoint(
     keep_every_n_evals: int,
 ) -> Path:
     """Write ``state`` (un-replicated TrainingState) and the host rng ``key``; update the manifest
-    and prune. Returns the checkpoint directory."""
+    and prune. Returns the checkpoint directory.
+
+    SIGINT/SIGTERM wait until the checkpoint and its manifest are complete
+    (:func:`~popsan_jax.training.run_dir.deferred_signals`) and the write is synchronous, so no
+    Orbax thread outlives an interrupted or failed write. A failed write (disk full, read-only)
+    removes Orbax's unfinished directory and raises one CheckpointError line naming the last
+    good checkpoint; an altered manifest is refused, never replaced.
+    """
     run_dir = Path(run_dir).absolute()  # Orbax rejects relative paths
     root = checkpoint_dir(run_dir)
-    root.mkdir(parents=True, exist_ok=True)
     step = int(state.env_steps)
-    name = f"step_{step:012d}"
+    name = checkpoint_name(step)
     try:
         index = read_index(run_dir)
     except CheckpointError:
+        if (root / INDEX).exists():
+            raise
         index = {"checkpoints": [], "last": None, "best": None}
-    with ocp.StandardCheckpointer() as ckptr:
-        # force: a directory left by a crash between the Orbax write and the manifest update
-        # is not listed anywhere and may be overwritten.
-        ckptr.save(root / name, {"state": state, "key": key}, force=True)
-        ckptr.wait_until_finished()
-    entries = [e for e in index["checkpoints"] if e["step"] != step]
-    entries.append(
-        dict(step=step, eval_index=eval_index, success_rate=float(success_rate), dir=name)
-    )
-    best = max(entries, key=lambda e: (e["success_rate"], e["step"]))
-    kept = [
-        e
-        for e in entries
-        if e["step"] in (step, best["step"]) or e["eval_index"] % keep_every_n_evals == 0
-    ]
-    _write_index(run_dir, {"checkpoints": kept, "last": step, "best": best["step"]})
-    for e in entries:
-        if e not in kept:
-            shutil.rmtree(root / e["dir"], ignore_errors=True)
+    with deferred_signals(), _quiet_orbax():
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+            _check_free_space(root, (state, key))
+            with ocp.Checkpointer(ocp.StandardCheckpointHandler()) as ckptr:
+                # force: a directory left by a crash between the Orbax write and the manifest
+                # update is not listed anywhere and may be overwritten.
+                ckptr.save(root / name, {"state": state, "key": key}, force=True)
+            entries = [e for e in index["checkpoints"] if e["step"] != step]
+            entries.append(
+                dict(
+                    step=step,
+                    eval_index=eval_index,
+                    success_rate=float(success_rate),
+                    dir=name,
+                    digest=checkpoint_digest(root / name),
+                )
+            )
+            best = max(entries, key=lambda e: (e["success_rate"], e["step"]))
+            kept = [
+                e
+                for e in entries
+                if e["step"] in (step, best["step"]) or e["eval_index"] % keep_every_n_evals == 0
+            ]
+            _write_index(run_dir, {"checkpoints": kept, "last": step, "best": best["step"]})
+        except Exception as e:  # ENOSPC, EROFS...: Orbax wraps them in many types
+            for tmp in root.glob(f"{name}.orbax-checkpoint-tmp*"):
+                shutil.rmtree(tmp, ignore_errors=True)
+            raise CheckpointError(
+                f"cannot write checkpoint {root / name}: {first_line(e)}; {_last_good(index)}"
+            ) from e
+        for e in entries:
+            if e not in kept:
+                try:
+                    doomed = contained(root, e["dir"], "pruned checkpoint")
+                except CheckpointError:
+                    continue  # never delete outside checkpoints/; the entry is dropped anyway
+                shutil.rmtree(doomed, ignore_errors=True)
     return root / name
+
+
+@contextlib.contextmanager
+def _quiet_orbax() -> Iterator[None]:
+    """No third-party tracebacks from a failed write: Orbax logs each failing thread's report
+    (absl) and asyncio reports never-retrieved futures; the CheckpointError says it in one line."""
+    loggers = [logging.getLogger(n) for n in ("absl", "asyncio", "orbax")]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        gc.collect()  # failed futures report when collected: now, while silenced
+        for lg, level in zip(loggers, levels, strict=True):
+            lg.setLevel(level)
+
+
+def _check_free_space(root: Path, tree: Any) -> None:
+    """ENOSPC before Orbax starts, where the size is known: the arrays twice, plus 1 MiB."""
+    need = sum(int(np.asarray(x).nbytes) for x in jax.tree.leaves(tree)) * 2 + (1 << 20)
+    free = shutil.disk_usage(root).free
+    if free < need:
+        raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({free} bytes free)")
+
+
+def _last_good(index: dict[str, Any]) -> str:
+    last = index.get("last")
+    if last is None:
+        return "no checkpoint was written yet"
+    return f"the last good checkpoint is step {last}"
+
+
+def write_error(run_dir: str | os.PathLike, e: BaseException) -> CheckpointError:
+    """One line for a failed write into ``run_dir`` (disk full, read-only...), naming the last
+    good checkpoint to resume from."""
+    try:
+        last = _last_good(read_index(run_dir))
+    except CheckpointError:
+        last = "no checkpoint was written yet"
+    return CheckpointError(
+        f"cannot write to {run_dir}: {first_line(e)}; {last}; free the space or fix the "
+        f"permissions, then: python train.py --resume {run_dir}"
+    )
+
+
+def first_line(e: BaseException) -> str:
+    """The OS's wording of the error under ``e`` (Orbax and tensorstore wrap it), else its first
+    line."""
+    cause: BaseException | None = e
+    while cause is not None:
+        if isinstance(cause, OSError) and cause.strerror:
+            return cause.strerror
+        cause = cause.__cause__ or cause.__context__
+    code = re.search(r"os_error_code='?(\d+)", str(e))  # tensorstore's wording of an OSError
+    if code:
+        return os.strerror(int(code.group(1)))
+    text = str(e).strip().splitlines()
+    return (text[0] if text else type(e).__name__)[:300]
 
 
 def _entry(index: dict[str, Any], which: str | int) -> dict[str, Any]:
@@ -130,16 +303,19 @@ def restore_checkpoint(
 ) -> tuple[Any, jax.Array, dict[str, Any]]:
     """Restore ``(state, key, manifest entry)`` into the structure of ``template`` (a fresh
     TrainingState from the same config)."""
-    entry = _entry(read_index(run_dir), which)
-    path = checkpoint_dir(run_dir) / entry["dir"]
+    index = read_index(run_dir)
+    entry = _entry(index, which)
+    path = contained(checkpoint_dir(run_dir), entry.get("dir"))
+    verify_checkpoint(run_dir, index, entry)  # old manifests without digests load unverified
     target = {"state": template, "key": jax.random.PRNGKey(0)}
     abstract = jax.tree.map(lambda x: ocp.utils.to_shape_dtype_struct(jnp.asarray(x)), target)
     try:
-        with ocp.StandardCheckpointer() as ckptr:
+        with deferred_signals(), ocp.Checkpointer(ocp.StandardCheckpointHandler()) as ckptr:
             restored = ckptr.restore(path.absolute(), abstract)
     except Exception as e:  # Orbax raises many types for damaged or mismatched data
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise CheckpointError(f"cannot restore checkpoint {path}: {msg[:300]}") from e
+    _check_finite(restored, path)
     return restored["state"], restored["key"], entry
 
 

@@ -15,7 +15,9 @@ logs, evaluates, checks for NaN and writes checkpoints between iterations.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -39,6 +41,7 @@ from popsan_jax.training.iteration import (
     make_iteration_fn,
     stagger_episodes,
 )
+from popsan_jax.training.run_dir import RunLock, check_run_dir
 from popsan_jax.training.run_log import RunLogger, wandb_available
 from popsan_jax.training.setup import build_networks, make_env, make_optimizer, make_spikes_fn
 from popsan_jax.training.warm_start import warm_start
@@ -46,12 +49,14 @@ from popsan_jax.training.warm_start import warm_start
 
 @dataclasses.dataclass
 class TrainResult:
-    """What :func:`train` hands back: final (un-replicated) state and the last eval record."""
+    """What :func:`train` hands back: final (un-replicated) state and the last eval record;
+    ``finished`` when a resumed run had already reached its ``total_env_steps``."""
 
     state: TrainingState
     key: jax.Array
     last_eval: dict[str, Any] | None
     run_dir: Path
+    finished: bool = False
 
 
 def make_diagnostics_fn(
@@ -146,26 +151,67 @@ def train(
     ConfigError for impossible sizes, CheckpointError for a bad resume directory and
     NonFiniteError (with the env step) when the loss or parameters stop being finite; the last
     good checkpoint is then left untouched.
+
+    The run's lock (popsan_jax/training/run_dir.py) is held throughout: a second trainer on it
+    is refused. A resumed run first writes its config (a new ``total_env_steps`` is kept even
+    if it is killed again); a resumed run with no checkpoint yet trains again from step 0; a
+    resumed run that is already finished returns at once with ``finished``. A failed write
+    (disk full, read-only) is one CheckpointError line naming the last good checkpoint.
     """
     run_dir = Path(run_dir)
     if config.wandb and not wandb_available():  # before anything is written
         raise ConfigError(
             "--wandb needs the wandb package (pip install wandb); it is not installed"
         )
+    check_run_dir(run_dir, resume)  # writable, metrics.jsonl on its schema: before compiling
     t = build_trainer(config, environment)
-    env, networks, devices = t.env, t.networks, t.devices
     key = jax.random.PRNGKey(config.seed)
     key, key_init = jax.random.split(key)
-    state = init_training_state(config, networks, t.optimizer, env.observation_size, key_init)
-    eval_index = 0
-    if resume:
-        state, key, entry = checkpoint.restore_checkpoint(run_dir, state, "last")
-        eval_index = entry["eval_index"]
-    else:
+    state = init_training_state(config, t.networks, t.optimizer, t.env.observation_size, key_init)
+    restart = resume and not (checkpoint.checkpoint_dir(run_dir) / checkpoint.INDEX).exists()
+    if not resume or restart:
         if config.init_from:
             state = warm_start(state, config, t.optimizer, environment)
         run_dir.mkdir(parents=True, exist_ok=True)
-        config.to_json(run_dir / checkpoint.CONFIG)
+    lock = RunLock(run_dir, note=_note)
+    lock.acquire()
+    try:
+        return _train_locked(
+            t, config, run_dir, state, key, resume, restart, progress, on_iteration
+        )
+    except OSError as e:  # ENOSPC, EROFS... writing the config, the metrics or TensorBoard's log
+        raise checkpoint.write_error(run_dir, e) from e
+    finally:
+        lock.release()
+
+
+def _note(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def _train_locked(
+    t: Trainer,
+    config: RunConfig,
+    run_dir: Path,
+    state: TrainingState,
+    key: jax.Array,
+    resume: bool,
+    restart: bool,
+    progress: bool,
+    on_iteration: Callable[[int, dict[str, float]], None] | None,
+) -> TrainResult:
+    """The body of :func:`train`, with the run's lock held."""
+    env, networks, devices = t.env, t.networks, t.devices
+    eval_index = 0
+    if restart:
+        _note(f"note: {run_dir} has no checkpoint yet; training it again from step 0")
+        resume = False
+    elif resume:
+        state, key, entry = checkpoint.restore_checkpoint(run_dir, state, "last")
+        eval_index = entry["eval_index"]
+        if int(state.env_steps) >= config.num_iterations * config.env_steps_per_iteration:
+            return TrainResult(state=state, key=key, last_eval=None, run_dir=run_dir, finished=True)
+    config.to_json(run_dir / checkpoint.CONFIG)
     start_steps = int(state.env_steps)
     start_iteration = start_steps // config.env_steps_per_iteration
     iteration, episode_length = t.iteration, t.episode_length
@@ -200,6 +246,7 @@ def train(
         config=config.to_dict(),
         use_wandb=config.wandb,
         progress=progress,
+        restart=restart,
     )
     try:
         logger.message(
@@ -237,9 +284,14 @@ def train(
             elapsed = time.monotonic() - t0
             steps = int(jax.device_get(state_r.env_steps[0]))
             if metrics.pop("finite") < 1.0:
+                kept = (
+                    f"the last good checkpoint in {run_dir} is kept"
+                    if checkpoint.has_checkpoint(run_dir)
+                    else f"{run_dir} has no checkpoint yet"
+                )
                 raise NonFiniteError(
                     f"non-finite loss or parameters at env step {steps} (iteration {it + 1}); "
-                    f"stopped without saving, the last good checkpoint in {run_dir} is kept"
+                    f"stopped without saving, {kept}"
                 )
             metrics["steps_per_s"] = config.env_steps_per_iteration / max(elapsed, 1e-9)
             logger.log("train", steps, metrics)
@@ -261,5 +313,6 @@ def train(
             )
         final = _unreplicate(state_r)
     finally:
-        logger.close()
+        with contextlib.suppress(OSError):  # a full disk: the error in flight says so
+            logger.close()
     return TrainResult(state=final, key=key, last_eval=last_eval, run_dir=run_dir)

@@ -9,7 +9,8 @@ from typing import Any
 
 from popsan_jax.config import RunConfig, resolve_config
 from popsan_jax.errors import CheckpointError, ConfigError
-from popsan_jax.training.checkpoint import CONFIG, read_index
+from popsan_jax.training.checkpoint import CONFIG, INDEX, checkpoint_dir, read_index
+from popsan_jax.training.run_dir import check_name, check_runs_dir
 
 RESUMABLE = {"total_env_steps"}  # the only field a resumed run may change
 
@@ -25,14 +26,17 @@ def resume_config(
     """The saved config of ``run_dir`` with ``given`` (only RESUMABLE fields) applied.
 
     Any other change (a field, an actor kwarg, a preset, env overrides) raises ConfigError; a
-    missing run, checkpoint or config raises CheckpointError; both before anything is written.
+    missing run or config, or an unreadable manifest, raises CheckpointError; both before
+    anything is written. A run with its config but no checkpoint yet (killed before the first)
+    is resumable: training restarts it from step 0 (popsan_jax.training.loop).
     """
     run_dir = Path(run_dir)
     bad = sorted(set(given) - RESUMABLE) + sorted(actor_given or {})
     if bad or preset or env_overrides:
         extra = ", ".join(bad) or "preset/env overrides"
         raise ConfigError(f"cannot change {extra} when resuming (only --total-env-steps)")
-    read_index(run_dir)  # fails early with a clear CheckpointError
+    if (checkpoint_dir(run_dir) / INDEX).exists() or not (run_dir / CONFIG).is_file():
+        read_index(run_dir)  # fails early with a clear CheckpointError
     try:
         config = RunConfig.from_json(run_dir / CONFIG)
     except ConfigError as e:
@@ -52,6 +56,9 @@ def new_run(
 
     ``name`` defaults to ``<env>-<actor>-<timestamp>``; an existing directory raises ConfigError.
     """
+    if name:
+        check_name(name)
+    check_runs_dir(runs_dir)  # a file, a kernel filesystem or read-only: now, not after compiling
     config = resolve_config(preset, backend, given, actor_given)
     name = name or f"{config.env}-{config.actor}-{time.strftime('%Y%m%d-%H%M%S')}"
     run_dir = Path(runs_dir) / name
@@ -67,7 +74,12 @@ def interrupted_message(run_dir: Path | None) -> str:
     try:
         read_index(run_dir)
     except CheckpointError:
-        return f"interrupted before the first checkpoint; {run_dir} has nothing to resume"
+        if not (Path(run_dir) / CONFIG).is_file():
+            return "interrupted before anything was written"
+        return (
+            f"interrupted before the first checkpoint; train it again from step 0 with: "
+            f"python train.py --resume {run_dir}"
+        )
     return (
         f"interrupted; the last checkpoint is kept; resume with: python train.py --resume {run_dir}"
     )

@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from popsan_jax.errors import ConfigError
 from popsan_jax.io import read_jsonl, write_jsonl
+from popsan_jax.schema import check_metrics_record
 
 METRICS = "metrics.jsonl"
 
@@ -41,7 +42,8 @@ def _drop_records_after(run_dir: Path, env_steps: int) -> None:
 
 
 class RunLogger:
-    """Writes metrics of one run; ``initial_steps`` > 0 when resuming (appends to the files)."""
+    """Writes metrics of one run; ``initial_steps`` > 0 when resuming (appends to the files),
+    ``restart`` when a run without a checkpoint is trained again (its old records go)."""
 
     def __init__(
         self,
@@ -51,15 +53,16 @@ class RunLogger:
         config: dict[str, Any] | None = None,
         use_wandb: bool = False,
         progress: bool = True,
+        restart: bool = False,
     ) -> None:
         self.run_dir = Path(run_dir)
         self.start = time.monotonic()
-        if initial_steps > 0:
-            _drop_records_after(self.run_dir, initial_steps)
+        if initial_steps > 0 or restart:  # restart: trained again from step 0, nothing kept
+            _drop_records_after(self.run_dir, initial_steps if initial_steps > 0 else -1)
         self._jsonl = open(self.run_dir / METRICS, "a", buffering=1)
         # purge_step: TensorBoard hides the points an earlier, killed process logged past the
         # checkpoint, as _drop_records_after does for the JSONL.
-        purge = initial_steps + 1 if initial_steps > 0 else None
+        purge = initial_steps + 1 if initial_steps > 0 else (0 if restart else None)
         self._tb = SummaryWriter(str(self.run_dir / "tb"), purge_step=purge)
         self._wandb = None
         if use_wandb:
@@ -150,8 +153,10 @@ def _plain(value: Any) -> Any:
 
 def read_metrics(run_dir: str | os.PathLike, kind: str | None = None) -> list[dict[str, Any]]:
     """All records of ``metrics.jsonl`` (optionally of one kind; none when there is no file),
-    read under :func:`popsan_jax.io.read_jsonl`'s torn-line rule."""
+    read under :func:`popsan_jax.io.read_jsonl`'s torn-line rule; a record off its schema
+    (popsan_jax/schema.py) is a CheckpointError naming its line."""
     path = Path(run_dir) / METRICS
     if not path.exists():
         return []
-    return [r for r in read_jsonl(path) if kind is None or r.get("kind") == kind]
+    records = read_jsonl(path, check_metrics_record)
+    return [r for r in records if kind is None or r.get("kind") == kind]

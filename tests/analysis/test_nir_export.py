@@ -240,9 +240,12 @@ def test_export_errors_are_one_line_exit_2(tmp_path, capsys):
     broken = tmp_path / "broken"
     broken.mkdir()
     shutil.copy(RUN / "config.json", broken / "config.json")
-    (broken / "checkpoints").mkdir()
+    # A well-formed manifest (no digest, so unverified) naming a checkpoint that is not Orbax's.
+    (broken / "checkpoints" / "step_000000000001").mkdir(parents=True)
+    (broken / "checkpoints" / "step_000000000001" / "junk").write_text("not a checkpoint")
+    entry = {"step": 1, "eval_index": 1, "success_rate": 0.0, "dir": "step_000000000001"}
     (broken / "checkpoints" / "index.json").write_text(
-        json.dumps({"checkpoints": [{"step": 1, "dir": "step_1"}], "last": 1, "best": 1})
+        json.dumps({"checkpoints": [entry], "last": 1, "best": 1})
     )
     assert eval_cli.main([str(broken), "--export-nir", str(tmp_path / "p.nir")]) == 2
     err = capsys.readouterr().err.strip()

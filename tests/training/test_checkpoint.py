@@ -56,7 +56,7 @@ def test_missing_and_corrupt_checkpoints_raise_checkpoint_error(tmp_path):
     for f in path.rglob("*"):
         if f.is_file() and f.stat().st_size > 0 and "manifest" in f.name:
             f.write_bytes(b"garbage")
-    with pytest.raises(CheckpointError, match="cannot restore checkpoint"):
+    with pytest.raises(CheckpointError, match="is damaged"):
         checkpoint.restore_checkpoint(tmp_path, state, "last")
     wrong_shape = _FakeState(w=jnp.ones(3), env_steps=jnp.int32(0))
     shutil_path = tmp_path / "other"
@@ -79,6 +79,7 @@ def test_index_names_only_finished_checkpoints(tmp_path):
     checkpoint.save_checkpoint(tmp_path, later, jax.random.PRNGKey(1), 2, 0.1, 1)
     restored, _, entry = checkpoint.restore_checkpoint(tmp_path, state, "last")
     np.testing.assert_array_equal(restored.w, [7.0, 7.0])
+    assert entry.pop("digest").startswith("sha256:")
     assert entry == {"step": 200, "eval_index": 2, "success_rate": 0.1, "dir": stray.name}
     assert checkpoint.read_index(tmp_path)["best"] == 100
     assert not (tmp_path / "checkpoints" / "index.json.tmp").exists()

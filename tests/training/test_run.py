@@ -72,8 +72,10 @@ def test_resume_takes_the_saved_config_and_only_more_steps(tmp_path):
     saved, run_dir = run.prepare_run("cpu", {"seed": 3}, preset="smoke", runs_dir=tmp_path)
     run_dir.mkdir()
     saved.to_json(run_dir / "config.json")
+    # No checkpoint yet (killed before the first): resumable, training restarts it from step 0.
+    assert run.prepare_run("cpu", {}, resume=run_dir) == (saved, run_dir)
     with pytest.raises(UserError, match="no checkpoint in"):
-        run.prepare_run("cpu", {}, resume=run_dir)
+        run.prepare_run("cpu", {}, resume=tmp_path)  # no config either: not a run
     checkpoint_dir(run_dir).mkdir()
     entry = {"step": 1, "eval_index": 0, "success_rate": 0.0, "dir": "step_1"}
     index = {"checkpoints": [entry], "last": 1, "best": 1}
@@ -88,9 +90,11 @@ def test_resume_takes_the_saved_config_and_only_more_steps(tmp_path):
 
 def test_interrupted_message_says_whether_a_checkpoint_is_kept(tmp_path):
     assert run.interrupted_message(None) == "interrupted"
-    assert (
-        run.interrupted_message(tmp_path)
-        == f"interrupted before the first checkpoint; {tmp_path} has nothing to resume"
+    assert run.interrupted_message(tmp_path) == "interrupted before anything was written"
+    (tmp_path / "config.json").write_text("{}")
+    assert run.interrupted_message(tmp_path) == (
+        "interrupted before the first checkpoint; train it again from step 0 with: "
+        f"python train.py --resume {tmp_path}"
     )
     checkpoint_dir(tmp_path).mkdir()
     entry = {"step": 1, "eval_index": 0, "success_rate": 0.0, "dir": "step_1"}
