@@ -95,6 +95,14 @@ def test_paper_preset_is_the_committed_pick_run_that_learned():
         assert paper == current, backend
 
 
+def test_readme_command_is_the_committed_pick_hold_run():
+    # `python train.py --env franka_pick` on a CPU (docs/results.md, "Pick-and-hold") must be
+    # the committed revision-2 run; `--seed K` and `--actor mlp` change only those fields.
+    committed = RunConfig.from_json(ROOT / "docs/results/pick_hold/popsan-s0/config.json")
+    assert resolve_config(None, "cpu", dict(env="franka_pick")) == committed
+    assert committed.env_revision == CURRENT_ENV_REVISION
+
+
 def test_documented_t2_fine_tune_is_the_committed_run():
     # docs/results.md's fine-tune command (T = 2 under a spike budget, the energy result) must
     # resolve to the committed t2-s0 config, whose checkpoint is committed beside it.
