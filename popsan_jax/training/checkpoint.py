@@ -129,10 +129,16 @@ def checkpoint_dir(run_dir: str | os.PathLike) -> Path:
     return Path(run_dir) / "checkpoints"
 
 
+def index_path(run_dir: str | os.PathLike) -> Path:
+    """The run's checkpoint manifest; whether the file exists tells a run that has written a
+    checkpoint (or tried to) from one killed before its first."""
+    return checkpoint_dir(run_dir) / INDEX
+
+
 def read_index(run_dir: str | os.PathLike) -> dict[str, Any]:
     """The manifest ``{"checkpoints": [{"step", "eval_index", "success_rate", "dir", "digest"}],
     "last", "best"}``; raises CheckpointError when missing, unreadable or off its schema."""
-    path = checkpoint_dir(run_dir) / INDEX
+    path = index_path(run_dir)
     if not Path(run_dir).is_dir():
         raise CheckpointError(f"run directory {run_dir} does not exist")
     try:
@@ -154,7 +160,7 @@ def has_checkpoint(run_dir: str | os.PathLike) -> bool:
 
 
 def _write_index(run_dir: Path, index: dict[str, Any]) -> None:
-    write_json(checkpoint_dir(run_dir) / INDEX, index)
+    write_json(index_path(run_dir), index)
 
 
 def save_checkpoint(
@@ -181,7 +187,7 @@ def save_checkpoint(
     try:
         index = read_index(run_dir)
     except CheckpointError:
-        if (root / INDEX).exists():
+        if index_path(run_dir).exists():
             raise
         index = {"checkpoints": [], "last": None, "best": None}
     with deferred_signals(), _quiet_orbax():
@@ -260,12 +266,12 @@ def write_error(run_dir: str | os.PathLike, e: BaseException) -> CheckpointError
     """One line for a failed write into ``run_dir`` (disk full, read-only...), naming the last
     good checkpoint to resume from."""
     try:
-        last = _last_good(read_index(run_dir))
+        index = read_index(run_dir)
     except CheckpointError:
-        last = "no checkpoint was written yet"
+        index = {}
     return CheckpointError(
-        f"cannot write to {run_dir}: {first_line(e)}; {last}; free the space or fix the "
-        f"permissions, then: python train.py --resume {run_dir}"
+        f"cannot write to {run_dir}: {first_line(e)}; {_last_good(index)}; free the space or "
+        f"fix the permissions, then: python train.py --resume {run_dir}"
     )
 
 

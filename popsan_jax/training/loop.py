@@ -168,7 +168,7 @@ def train(
     key = jax.random.PRNGKey(config.seed)
     key, key_init = jax.random.split(key)
     state = init_training_state(config, t.networks, t.optimizer, t.env.observation_size, key_init)
-    restart = resume and not (checkpoint.checkpoint_dir(run_dir) / checkpoint.INDEX).exists()
+    restart = resume and not checkpoint.index_path(run_dir).exists()
     if not resume or restart:
         if config.init_from:
             state = warm_start(state, config, t.optimizer, environment)

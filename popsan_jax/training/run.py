@@ -9,7 +9,7 @@ from typing import Any
 
 from popsan_jax.config import RunConfig, resolve_config
 from popsan_jax.errors import CheckpointError, ConfigError
-from popsan_jax.training.checkpoint import CONFIG, INDEX, checkpoint_dir, read_index
+from popsan_jax.training.checkpoint import CONFIG, index_path, read_index
 from popsan_jax.training.run_dir import check_name, check_runs_dir
 
 RESUMABLE = {"total_env_steps"}  # the only field a resumed run may change
@@ -35,7 +35,7 @@ def resume_config(
     if bad or preset or env_overrides:
         extra = ", ".join(bad) or "preset/env overrides"
         raise ConfigError(f"cannot change {extra} when resuming (only --total-env-steps)")
-    if (checkpoint_dir(run_dir) / INDEX).exists() or not (run_dir / CONFIG).is_file():
+    if index_path(run_dir).exists() or not (run_dir / CONFIG).is_file():
         read_index(run_dir)  # fails early with a clear CheckpointError
     try:
         config = RunConfig.from_json(run_dir / CONFIG)

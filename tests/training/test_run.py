@@ -12,7 +12,7 @@ import pytest
 from popsan_jax.cli import given_flags, run_choices, train_parser
 from popsan_jax.errors import UserError
 from popsan_jax.training import run
-from popsan_jax.training.checkpoint import INDEX, checkpoint_dir
+from popsan_jax.training.checkpoint import checkpoint_dir, index_path
 from popsan_jax.training.loop import train
 
 
@@ -79,7 +79,7 @@ def test_resume_takes_the_saved_config_and_only_more_steps(tmp_path):
     checkpoint_dir(run_dir).mkdir()
     entry = {"step": 1, "eval_index": 0, "success_rate": 0.0, "dir": "step_1"}
     index = {"checkpoints": [entry], "last": 1, "best": 1}
-    (checkpoint_dir(run_dir) / INDEX).write_text(json.dumps(index))
+    index_path(run_dir).write_text(json.dumps(index))
     config, same = run.prepare_run("cpu", {"total_env_steps": 10**6}, resume=run_dir)
     assert same == run_dir and config == saved.replace(total_env_steps=10**6)
     with pytest.raises(UserError, match="cannot change preset/env overrides"):
@@ -99,7 +99,7 @@ def test_interrupted_message_says_whether_a_checkpoint_is_kept(tmp_path):
     checkpoint_dir(tmp_path).mkdir()
     entry = {"step": 1, "eval_index": 0, "success_rate": 0.0, "dir": "step_1"}
     index = {"checkpoints": [entry], "last": 1, "best": 1}
-    (checkpoint_dir(tmp_path) / INDEX).write_text(json.dumps(index))
+    index_path(tmp_path).write_text(json.dumps(index))
     assert run.interrupted_message(tmp_path) == (
         "interrupted; the last checkpoint is kept; resume with: "
         f"python train.py --resume {tmp_path}"
