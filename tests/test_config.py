@@ -98,7 +98,7 @@ def test_paper_preset_is_the_committed_pick_run_that_learned():
 def test_readme_command_is_the_committed_pick_hold_run():
     # `python train.py --env franka_pick` on a CPU (docs/results.md, "Pick-and-hold") must be
     # the committed revision-2 run; `--seed K` and `--actor mlp` change only those fields.
-    committed = RunConfig.from_json(ROOT / "docs/results/pick_hold/popsan-s0/config.json")
+    committed = RunConfig.from_json(ROOT / "docs/reference/pick-hold-popsan-s0/config.json")
     assert resolve_config(None, "cpu", dict(env="franka_pick")) == committed
     assert committed.env_revision == CURRENT_ENV_REVISION
 
