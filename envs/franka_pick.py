@@ -59,8 +59,11 @@ let a contact under a steady load slip at a rate proportional to ``(1 - d) / d``
 constant, and ``refsafe`` keeps that time constant >= 2 substeps. The pad-cube pairs therefore
 use ``pad_solimp`` with impedance 0.99 (MuJoCo's default is 0.95), which with 10 ms substeps
 keeps a held cube in the fingers for 20 s; at 20 ms substeps so stiff a contact and the finger
-servos eject the cube when the lift starts. ``LEGACY_OVERRIDES[1]`` restores revision 1 (one
-20 ms substep, the default impedance, 200-step episodes) for runs saved before this change.
+servos eject the cube when the lift starts. Revision 3 lets the finger servo targets go 2 cm past
+the closed limit (``finger_target_low``), so that every grasp squeezes: with targets clamped at the
+limit, policies wedged the cube between one finger at each stop, with no servo force, and lost
+it. ``LEGACY_OVERRIDES`` restore revision 1 (one 20 ms substep, the default impedance,
+200-step episodes) and revision 2 (clamped finger targets) for runs saved before each change.
 """
 
 from __future__ import annotations
@@ -74,6 +77,7 @@ import numpy as np
 from brax.envs.base import State
 
 from envs.panda import (
+    CLAMPED_FINGERS,
     PandaEnv,
     apply_overrides,
     as_f32_dict,
@@ -88,8 +92,9 @@ MUJOCO_DEFAULT_SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)
 # the revision they were trained with; the library merges these under the run's overrides).
 LEGACY_OVERRIDES: dict[int, dict[str, Any]] = {
     1: dict(sim_dt=0.02, pad_solimp=MUJOCO_DEFAULT_SOLIMP, episode_length=200),
+    2: CLAMPED_FINGERS,
 }
-REVISION = 2
+REVISION = 3
 
 
 def default_config() -> ml_collections.ConfigDict:

@@ -38,6 +38,7 @@ import ml_collections
 from brax.envs.base import State
 
 from envs.panda import (
+    CLAMPED_FINGERS,
     PandaEnv,
     apply_overrides,
     as_f32_dict,
@@ -47,7 +48,9 @@ from envs.panda import (
 )
 
 SUCCESS_RADIUS = 0.02
-REVISION = 2  # 2: success = held at the target for the last hold_seconds (1: latched reach)
+# 2: success = held at the target for the last hold_seconds (1: latched reach);
+# 3: finger servo targets reach past the closed limit (envs/panda.py, FINGER_TARGET_LOW).
+REVISION = 3
 
 
 def default_config() -> ml_collections.ConfigDict:
@@ -80,7 +83,8 @@ class FrankaReach(PandaEnv):
 
     scene = "reach_scene.xml"
     revision = REVISION
-    legacy_overrides: dict[int, dict[str, Any]] = {1: {}}  # same physics; only metrics changed
+    # Revision 1 had revision 2's physics (only the metrics changed).
+    legacy_overrides: dict[int, dict[str, Any]] = {1: {}, 2: CLAMPED_FINGERS}
 
     default_config = staticmethod(default_config)
 

@@ -5,7 +5,7 @@ driven by a position servo whose target is ``data.ctrl``. The action (9 values, 
 [-1, 1] here) moves those targets, as in PixMC's FrankaPick::
 
     target += speed_scale * ctrl_dt * action * action_scale   # speed_scale 1 (arm), 0.1 (fingers)
-    target  = clip(target, joint_lower, joint_upper)
+    target  = clip(target, joint_lower, joint_upper)   # finger targets: [finger_target_low, upper]
 
 ``action_scale`` is PixMC's 7.5 by default (0.15 rad per 50 Hz step at full action; franka_reach).
 franka_pick uses 2.0, because PixMC's scale leaves no room for exploration noise in a grasp (see
@@ -42,6 +42,14 @@ JOINTS = ARM_JOINTS + FINGER_JOINTS
 HOME_QPOS = np.array([0.0, 0.0, 0.0, -np.pi / 2, 0.0, np.pi / 2, -np.pi / 4, 0.04, 0.04])
 ACTION_SCALE = 7.5  # PixMC's
 SPEED_SCALE = np.array([1.0] * 7 + [0.1] * 2)
+# Lowest finger servo target (m): 2 cm past the closed limit, so a finger that meets the cube, or
+# its own closed stop, still squeezes with up to kp * 0.02 = 20 N (the force range). Clamped at the
+# limit (0.0, revisions <= 2) a finger pressed to its stop holds with no servo force at all, and
+# policies learnt exactly that grasp: one finger at each stop, the cube wedged between them, and
+# it slipped out within seconds (docs/design.md, "The grasp that squeezes").
+FINGER_TARGET_LOW = -0.02
+# The override that restores the finger targets of revisions <= 2 (both Panda envs' revision 3).
+CLAMPED_FINGERS: dict[str, Any] = dict(finger_target_low=0.0)
 NUM_ACTUATORS = 9
 
 
@@ -55,6 +63,7 @@ def base_config(**fields: Any) -> ml_collections.ConfigDict:
         ls_iterations=6,
         init_joint_noise=0.125,
         action_scale=ACTION_SCALE,
+        finger_target_low=FINGER_TARGET_LOW,
     )
     values.update(fields)
     return ml_collections.ConfigDict(values)
@@ -100,6 +109,10 @@ def apply_overrides(
             raise EnvConfigError(f"{key} must be >= 1, got {config[key]}")
     if config.init_joint_noise < 0:
         raise EnvConfigError(f"init_joint_noise must be >= 0, got {config.init_joint_noise}")
+    if not -0.04 <= config.finger_target_low <= 0.0:
+        raise EnvConfigError(
+            f"finger_target_low must be in [-0.04, 0] m, got {config.finger_target_low}"
+        )
     if not config.action_scale > 0:
         raise EnvConfigError(f"action_scale must be > 0, got {config.action_scale}")
     if config.episode_length < 1:
@@ -180,6 +193,9 @@ class PandaEnv(Env):
         self._qvel_adr = np.array([j.dofadr[0] for j in jnt])
         self._lower = np.array([j.range[0] for j in jnt], dtype=np.float32)
         self._upper = np.array([j.range[1] for j in jnt], dtype=np.float32)
+        # Servo targets: the joint limits, except that finger targets reach finger_target_low.
+        self._ctrl_lower = self._lower.copy()
+        self._ctrl_lower[7:] = config.finger_target_low
         self._step_scale = (SPEED_SCALE * config.ctrl_dt * config.action_scale).astype(np.float32)
         self._left_tip = m.site("left_tip").id
         self._right_tip = m.site("right_tip").id
@@ -246,7 +262,7 @@ class PandaEnv(Env):
     def _physics_step(self, data: mjx.Data, action: jax.Array) -> tuple[mjx.Data, jax.Array]:
         """Clip the action, move the servo targets, run the substeps. Returns (data, action)."""
         action = jnp.clip(action, -1.0, 1.0)
-        ctrl = jnp.clip(data.ctrl + self._step_scale * action, self._lower, self._upper)
+        ctrl = jnp.clip(data.ctrl + self._step_scale * action, self._ctrl_lower, self._upper)
         data = data.replace(ctrl=ctrl)
         for _ in range(self._n_substeps):
             data = mjx.step(self._mjx_model, data)

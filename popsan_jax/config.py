@@ -25,7 +25,8 @@ from popsan_jax.io import write_json
 from popsan_jax.schema import check_config
 
 ACTORS = ("popsan", "mlp")
-CURRENT_ENV_REVISION = 2  # franka_pick/franka_reach revision 2: the grasp that holds
+# franka_pick/franka_reach revision 2: the grasp that holds; 3: finger targets past the closed stop
+CURRENT_ENV_REVISION = 3
 LR_SCHEDULES = ("constant", "cosine")
 
 # The paper's PopSAN shape (DESIGN.md): pop 10 in and out, hidden 256-256, T = 5.
