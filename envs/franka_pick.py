@@ -26,10 +26,14 @@ Reward (PixMC's terms; ``state.metrics`` carries each UNSCALED term; scales in
     lift            = 0.5 if obj_z - z_rest > 0.015 and held       scale 4.0
     object_goal     = 1 / (0.04 + |goal_z - obj_z|) if lifted+held scale 1.28
     goal_bonus      = 0.5 if |goal_z - obj_z| <= 0.04 and held     scale 4.0
+    object_speed    = |v_obj| (m/s) if lifted+held                 scale -4.0
     action          = sum(a^2) of the clipped action               scale -0.01
 
 ``held`` (0/1, no scale): both fingertip pads within ``grasp_radius`` (0.04 m) of the cube centre.
 The object terms pay only while the cube is held, so no term pays for a thrown or dropped cube.
+``object_speed`` (not PixMC's) charges a lifted cube's motion: the goal is a height, and with a
+grasp that squeezes nothing else stops a policy from swinging the held cube through the goal
+band (``docs/design.md``, "Holding still").
 ``in band``: ``|goal_z - obj_z| <= 0.25 (goal_z - z_rest)`` (PixMC's success tolerance).
 
 Episode metrics (``state.metrics``; their value at an episode's last step is the episode's):
@@ -93,8 +97,9 @@ MUJOCO_DEFAULT_SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)
 LEGACY_OVERRIDES: dict[int, dict[str, Any]] = {
     1: dict(sim_dt=0.02, pad_solimp=MUJOCO_DEFAULT_SOLIMP, episode_length=200),
     2: CLAMPED_FINGERS,
+    3: dict(reward_scales=dict(object_speed=0.0)),
 }
-REVISION = 3
+REVISION = 4
 
 
 def default_config() -> ml_collections.ConfigDict:
@@ -116,6 +121,7 @@ def default_config() -> ml_collections.ConfigDict:
             lift=4.0,
             object_goal=1.28,
             goal_bonus=4.0,
+            object_speed=-4.0,
             action=-0.01,
         ),
     )
@@ -128,9 +134,11 @@ def pick_reward_terms(
     goal_z: float,
     action: jax.Array,
     grasp_radius: float,
+    obj_vel: jax.Array | None = None,
     z_rest: float = Z_REST,
 ) -> dict[str, jax.Array]:
-    """Unscaled reward terms for one env: ``obj``/tips ``[3]``, ``action`` ``[9]``.
+    """Unscaled reward terms for one env: ``obj``/tips ``[3]``, ``action`` ``[9]``, the cube's
+    linear velocity ``obj_vel`` ``[3]`` (m/s; None: at rest).
 
     The object terms (lift, object_goal, goal_bonus) count only while ``is_held``; ``held``
     itself (0/1) is returned too, for the success counter and the metrics (it has no scale).
@@ -147,10 +155,16 @@ def pick_reward_terms(
             lift=jnp.where(lifted, 0.5, 0.0),
             object_goal=jnp.where(lifted, 1.0 / (0.04 + og_d), 0.0),
             goal_bonus=jnp.where(held & (og_d <= 0.04), 0.5, 0.0),
+            object_speed=jnp.where(lifted, jnp.linalg.norm(speed_of(obj_vel)), 0.0),
             action=jnp.sum(jnp.square(action)),
             held=held.astype(jnp.float32),
         )
     )
+
+
+def speed_of(velocity: jax.Array | None) -> jax.Array:
+    """``velocity`` ``[3]``, zeros for None (a cube at rest)."""
+    return jnp.zeros(3) if velocity is None else velocity
 
 
 def is_held(d_left: jax.Array, d_right: jax.Array, grasp_radius: float) -> jax.Array:
@@ -173,6 +187,8 @@ class FrankaPick(PandaEnv):
         super().__init__(apply_overrides(default_config(), overrides, "franka_pick"))
         m = self.mj_model
         self._obj_qpos = m.joint("box_joint").qposadr[0]
+        # A free joint's first three velocities are its body's linear velocity (world frame).
+        self._obj_qvel = m.joint("box_joint").dofadr[0]
         self._obj_body = m.body("box").id
         self.z_rest = Z_REST
         self.goal_z = Z_REST + float(self.config.lift_height)
@@ -249,7 +265,13 @@ class FrankaPick(PandaEnv):
     def _terms(self, data, action: jax.Array) -> dict[str, jax.Array]:
         left, right = self._tips(data)
         return pick_reward_terms(
-            data.xpos[self._obj_body], left, right, self.goal_z, action, self._grasp_radius
+            data.xpos[self._obj_body],
+            left,
+            right,
+            self.goal_z,
+            action,
+            self._grasp_radius,
+            data.qvel[self._obj_qvel : self._obj_qvel + 3],
         )
 
     def _obs(self, data) -> jax.Array:

@@ -49,8 +49,9 @@ from envs.panda import (
 
 SUCCESS_RADIUS = 0.02
 # 2: success = held at the target for the last hold_seconds (1: latched reach);
-# 3: finger servo targets reach past the closed limit (envs/panda.py, FINGER_TARGET_LOW).
-REVISION = 3
+# 3: finger servo targets reach past the closed limit (envs/panda.py, FINGER_TARGET_LOW);
+# 4: as 3 (franka_pick's revision 4 changed its reward only).
+REVISION = 4
 
 
 def default_config() -> ml_collections.ConfigDict:
@@ -84,7 +85,7 @@ class FrankaReach(PandaEnv):
     scene = "reach_scene.xml"
     revision = REVISION
     # Revision 1 had revision 2's physics (only the metrics changed).
-    legacy_overrides: dict[int, dict[str, Any]] = {1: {}, 2: CLAMPED_FINGERS}
+    legacy_overrides: dict[int, dict[str, Any]] = {1: {}, 2: CLAMPED_FINGERS, 3: {}}
 
     default_config = staticmethod(default_config)
 

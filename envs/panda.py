@@ -239,6 +239,11 @@ class PandaEnv(Env):
         """Lower and upper limits ``[9]`` of the 9 actuated joints."""
         return self._lower.copy(), self._upper.copy()
 
+    def target_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds ``[9]`` of the servo targets: the joint limits, but finger
+        targets go down to ``finger_target_low``."""
+        return self._ctrl_lower.copy(), self._upper.copy()
+
     def _initial_data(self, q: jax.Array, **fields: jax.Array) -> mjx.Data:
         """A forward-computed ``mjx.Data`` with the 9 joints at ``q`` ``[9]`` (zero velocity),
         the servo targets at ``q`` and other Data ``fields`` (e.g. the object's qpos) replaced."""

@@ -95,6 +95,7 @@ def run_scripted_pick(env: FrankaPick, rng: jax.Array, num_episodes: int, steps:
                 in_band_held=(in_band & (state.metrics["held"] > 0)).astype(jnp.float32),
                 success=state.metrics["success"],
                 reached=state.metrics["reached"],
+                object_speed=state.metrics["object_speed"],
             )
             return state, trace
 

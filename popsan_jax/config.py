@@ -25,8 +25,9 @@ from popsan_jax.io import write_json
 from popsan_jax.schema import check_config
 
 ACTORS = ("popsan", "mlp")
-# franka_pick/franka_reach revision 2: the grasp that holds; 3: finger targets past the closed stop
-CURRENT_ENV_REVISION = 3
+# franka_pick/franka_reach revision 2: the grasp that holds; 3: finger targets past the closed
+# stop; 4: franka_pick charges a lifted cube's speed (envs/franka_pick.py)
+CURRENT_ENV_REVISION = 4
 LR_SCHEDULES = ("constant", "cosine")
 
 # The paper's PopSAN shape (DESIGN.md): pop 10 in and out, hidden 256-256, T = 5.

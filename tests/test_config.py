@@ -164,7 +164,7 @@ def test_config_without_env_revision_rebuilds_the_env_it_was_trained_with(tmp_pa
     # back with the physics it was trained with (one 20 ms substep, MuJoCo's default pad
     # impedance, 200-step episodes), and its own overrides still win.
     fresh = resolve_config(overrides=dict(env="franka_pick"))
-    assert fresh.env_revision == 2
+    assert fresh.env_revision == CURRENT_ENV_REVISION == 4
     data = fresh.to_dict()
     del data["env_revision"]
     data["env_overrides"] = {"grasp_radius": 0.05}
@@ -174,15 +174,17 @@ def test_config_without_env_revision_rebuilds_the_env_it_was_trained_with(tmp_pa
     assert old.env_revision == 1
     legacy = envs.legacy_overrides("franka_pick", 1)
     assert legacy["sim_dt"] == 0.02 and legacy["episode_length"] == 200
+    assert legacy["finger_target_low"] == 0.0  # later revisions' changes are undone too
+    assert legacy["reward_scales"] == {"object_speed": 0.0}
     env = make_env(old)
     assert env.config.sim_dt == 0.02 and env.config.episode_length == 200
     assert tuple(env.config.pad_solimp) == (0.9, 0.95, 0.001, 0.5, 2.0)
     assert env.config.grasp_radius == 0.05
     current = make_env(fresh)
     assert current.config.sim_dt == 0.01 and current.config.episode_length == 250
-    assert envs.legacy_overrides("franka_pick", 2) == {}
-    with pytest.raises(envs.EnvConfigError, match="revisions 1..2"):
-        envs.legacy_overrides("franka_pick", 3)
+    assert envs.legacy_overrides("franka_pick", 4) == {}
+    with pytest.raises(envs.EnvConfigError, match="revisions 1..4"):
+        envs.legacy_overrides("franka_pick", 5)
 
 
 def test_current_env_revision_is_every_env_s_revision():

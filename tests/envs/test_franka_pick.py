@@ -43,6 +43,7 @@ def test_reset_and_step_shapes_finite_and_stable_avals(pick, stepped):  # noqa: 
         "reached",
         "hold_time",
         "held",
+        "object_speed",
     ]:
         assert nxt.metrics[name].shape == (BATCH,) and nxt.metrics[name].dtype == jnp.float32
 
@@ -80,10 +81,10 @@ def test_reward_terms_hand_computed():
     left = jnp.array([0.5, 0.03, 0.02])
     right = jnp.array([0.5, -0.01, 0.02])
 
-    def terms(obj_z, radius, tips=(left, right), action=None):
+    def terms(obj_z, radius, tips=(left, right), action=None, vel=(0.3, 0.0, -0.4)):
         obj = jnp.array([0.5, 0.0, obj_z])
         action = jnp.zeros(9) if action is None else action
-        return pick_reward_terms(obj, *tips, goal_z, action, radius)
+        return pick_reward_terms(obj, *tips, goal_z, action, radius, jnp.array(vel))
 
     # PixMC's ungated terms (grasp_radius 0). On the floor: left tip 3 cm away, right tip 1 cm
     # (clamped to 2 cm); not lifted.
@@ -97,12 +98,15 @@ def test_reward_terms_hand_computed():
     assert float(t["held"]) == 1.0  # ungated: every cube counts as held
     assert float(t["lift"]) == 0.5 and float(t["goal_bonus"]) == 0.5
     assert float(t["object_goal"]) == pytest.approx(1 / 0.07, rel=1e-4)
+    assert float(t["object_speed"]) == pytest.approx(0.5, rel=1e-5)  # |(0.3, 0, -0.4)| m/s
+    assert float(terms(0.02, 0.0)["object_speed"]) == 0.0  # on the floor: not lifted
     # Barely above the 1.5 cm lift threshold vs barely below it.
     assert float(terms(0.036, 0.0)["lift"]) == 0.5 and float(terms(0.034, 0.0)["lift"]) == 0.0
 
     # Grasp-gated (0.04 m): the same lifted cube far from the tips (a toss) earns no object term.
     t = terms(0.39, 0.04)
     assert float(t["lift"]) == float(t["object_goal"]) == float(t["goal_bonus"]) == 0.0
+    assert float(t["object_speed"]) == 0.0  # a flying cube is not charged either
     assert float(t["held"]) == 0.0
     assert float(t["dist_left"]) == pytest.approx(1 / (0.04 + np.hypot(0.03, 0.37)), rel=1e-5)
     # Between the pads (1.8 cm each side) it earns all three.
@@ -166,7 +170,7 @@ def test_reward_and_hold_counters_through_steps(pick):  # noqa: F811
     np.testing.assert_array_equal(nxt.metrics["success"], 0.0)
     np.testing.assert_array_equal(nxt.metrics["reached"], 1.0)
     np.testing.assert_allclose(nxt.metrics["hold_time"], 150 * env.dt, rtol=1e-6)
-    for term in ("lift", "object_goal", "goal_bonus"):
+    for term in ("lift", "object_goal", "goal_bonus", "object_speed"):
         np.testing.assert_array_equal(nxt.metrics[term], 0.0)
     assert np.all(np.asarray(nxt.info["object_pos"])[:, 2] > env.goal_z - 0.05)
     # The step's reward is the scaled sum of its unscaled terms.
@@ -194,6 +198,39 @@ def test_action_is_clipped_and_moves_servo_targets(pick, stepped):  # noqa: F811
     np.testing.assert_allclose(delta[:, :3], [[0.04, -0.04, 0.012]] * BATCH, atol=1e-6)
     np.testing.assert_allclose(delta[:, 7:], [[-0.004, 0.0]] * BATCH, atol=1e-6)
     assert float(nxt.metrics["action"][0]) == pytest.approx(1 + 1 + 0.09 + 1 + 1, rel=1e-5)
+
+
+def test_closed_fingers_squeeze_at_their_stop(pick, stepped):  # noqa: F811
+    # Finger targets go 2 cm past the closed stop: 15 steps of -0.004 m from 0.04 reach -0.02,
+    # and further closing stays there. With nothing between them the fingers rest on their
+    # stop (MuJoCo's joint limit is soft: a few mm past it under load), and each servo pushes
+    # kp * (target - q) - kv * qdot = 1000 * (-0.02 - q) N into it: about 17 N, the squeeze a
+    # grasped cube feels however the fingers meet it (with targets clamped at the stop: ~0 N).
+    state, _ = stepped
+    close = jnp.tile(jnp.array([0.0] * 7 + [-1.0, -1.0]), (BATCH, 1))
+    for _ in range(40):
+        state = pick.step(state, close)
+    data = state.pipeline_state
+    q, qd = np.asarray(data.qpos[:, 7:9]), np.asarray(data.qvel[:, 7:9])
+    np.testing.assert_allclose(data.ctrl[:, 7:], -0.02, atol=1e-6)
+    assert np.all((q > -0.006) & (q < 0.001)), q  # resting on the stop
+    servo = np.clip(1000.0 * (-0.02 - q) - 20.0 * qd, -20.0, 20.0)
+    np.testing.assert_allclose(data.actuator_force[:, 7:], servo, atol=0.05)
+    assert np.all(np.asarray(data.actuator_force[:, 7:]) < -14.0)
+    lo, hi = pick.env.target_limits()
+    np.testing.assert_allclose(lo, np.r_[pick.env.joint_limits()[0][:7], -0.02, -0.02])
+    np.testing.assert_allclose(hi, pick.env.joint_limits()[1])
+
+
+def test_revision_2_clamps_finger_targets_at_the_stop():
+    # Runs saved on revision 2 rebuild its clamp: a finger at its stop has no servo force.
+    for name in ("franka_pick", "franka_reach"):
+        legacy = envs.legacy_overrides(name, 2)
+        assert legacy["finger_target_low"] == 0.0
+        old = envs.get_environment(name, **legacy)
+        np.testing.assert_allclose(old.target_limits()[0], old.joint_limits()[0])
+    with pytest.raises(EnvConfigError, match="finger_target_low must be in"):
+        envs.get_environment("franka_pick", finger_target_low=-0.05)
 
 
 def test_action_scale_config_sets_the_servo_step():

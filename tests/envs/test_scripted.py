@@ -48,3 +48,20 @@ def test_scripted_episodes_succeed_by_pick_and_hold(long_hold):
     # aside): the lift comes from the grasp, not from knocking the cube about.
     resting = np.all(np.abs(trace["object_z"][:60] - env.z_rest) <= 0.01, axis=0)
     assert resting.mean() >= 0.9
+
+
+@pytest.mark.slow
+def test_object_speed_charges_the_lifted_cube_s_motion(long_hold):
+    # The reward term object_speed is the held, lifted cube's speed: 0 while it rests on the
+    # floor; during the lift at least its vertical speed (from the height trace); ~0 once it is
+    # held still at the goal.
+    env, trace = long_hold
+    speed, z = trace["object_speed"], trace["object_z"]
+    np.testing.assert_array_equal(speed[:30], 0.0)  # approaching: on the floor, not lifted
+    lift = slice(CLOSE_END, CLOSE_END + int(round(1.0 / env.dt)))
+    vz = np.abs(np.diff(z, axis=0))[lift] / env.dt  # mean vertical speed over each step
+    assert vz.mean() > 0.1  # the cube does rise in that second
+    assert speed[lift].mean() >= 0.8 * vz.mean()
+    assert speed[lift].max() < 5.0  # m/s: a physical speed, not a blow-up
+    settled = speed[CLOSE_END + int(round(4 / env.dt)) :]
+    assert np.median(settled) < 0.02

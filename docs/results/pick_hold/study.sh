@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The pick-and-hold study of docs/results.md (issue 18): PopSAN vs MLP on franka_pick (env
-# revision 2) with the README's own command, seeds 0-2, then the evaluations of
+# revision 3 since 3 December; the revision-2 run of 1 December used this script too) with the
+# README's own command, seeds 0-2, then the evaluations of
 # evaluate_study.sh (1000 episodes of each final checkpoint, energy with success per T, latency,
 # tracking figure, curves), a re-check on fresh episodes and the wider-object-range robustness.
 #
@@ -10,7 +11,7 @@
 #   script is run again.
 set -euo pipefail
 cd "$(dirname "$0")/../../.."
-RUNS=${1:-runs/pick_hold}
+RUNS=${1:-runs/pick_hold3}
 SEEDS=${2:-0 1 2}
 PY=.venv/bin/python
 # Training range: x 0.4-0.6 m, y -0.2-0.2 m; robustness range: 5 cm wider on every side.
