@@ -1,7 +1,8 @@
 """How does a franka_pick policy fail? Its episodes split by outcome, with the grasp at the end.
 
     .venv/bin/python benchmarks/pick_failure_modes.py docs/reference/pick-hold-popsan-s0
-    .venv/bin/python benchmarks/pick_failure_modes.py RUN --episodes 1000 --override finger_target_low=-0.02
+    .venv/bin/python benchmarks/pick_failure_modes.py RUN --episodes 1000 \
+        --override finger_target_low=-0.02
 
 Deterministic episodes of the run's final checkpoint (``--which``), in the run's own env revision
 unless ``--override`` changes env settings (values parsed as Python literals). Each episode is:
