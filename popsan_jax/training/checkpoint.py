@@ -35,6 +35,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -117,6 +118,35 @@ def verify_checkpoint(
     )
 
 
+def _checkpointer() -> ocp.Checkpointer:
+    """An Orbax checkpointer that acts for this process alone. Under jax.distributed only
+    process 0 saves and restores; Orbax's default cross-process barriers would wait for
+    processes that never call it (orbax #211)."""
+    me = jax.process_index()
+    options = ocp.options.MultiprocessingOptions(primary_host=me, active_processes={me})
+    return ocp.Checkpointer(ocp.StandardCheckpointHandler(), multiprocessing_options=options)
+
+
+@flax.struct.dataclass
+class _HostUInt64:
+    """Brax's ``UInt64`` (the normaliser's count) with the same fields but NumPy leaves: Brax's
+    own turns them back into jax arrays whenever it is built (``__post_init__``)."""
+
+    hi: Any
+    lo: Any
+
+
+def _host_tree(tree: Any) -> Any:
+    """``tree`` with NumPy leaves: under jax.distributed Orbax refuses to save a jax.Array that
+    lives on one process ("host local jax.Array in multi-host setting")."""
+    tree = jax.device_get(tree)
+    state = tree["state"]
+    count = state.normalizer_params.count
+    count = _HostUInt64(hi=np.asarray(count.hi), lo=np.asarray(count.lo))
+    normalizer = state.normalizer_params.replace(count=count)
+    return {**tree, "state": state.replace(normalizer_params=normalizer)}
+
+
 def _check_finite(tree: Any, path: Path) -> None:
     for leaf_path, leaf in jax.tree_util.tree_leaves_with_path(tree):
         leaf = np.asarray(leaf)
@@ -194,10 +224,10 @@ def save_checkpoint(
         try:
             root.mkdir(parents=True, exist_ok=True)
             _check_free_space(root, (state, key))
-            with ocp.Checkpointer(ocp.StandardCheckpointHandler()) as ckptr:
+            with _checkpointer() as ckptr:
                 # force: a directory left by a crash between the Orbax write and the manifest
                 # update is not listed anywhere and may be overwritten.
-                ckptr.save(root / name, {"state": state, "key": key}, force=True)
+                ckptr.save(root / name, _host_tree({"state": state, "key": key}), force=True)
             entries = [e for e in index["checkpoints"] if e["step"] != step]
             entries.append(
                 dict(
@@ -316,7 +346,7 @@ def restore_checkpoint(
     target = {"state": template, "key": jax.random.PRNGKey(0)}
     abstract = jax.tree.map(lambda x: ocp.utils.to_shape_dtype_struct(jnp.asarray(x)), target)
     try:
-        with deferred_signals(), ocp.Checkpointer(ocp.StandardCheckpointHandler()) as ckptr:
+        with deferred_signals(), _checkpointer() as ckptr:
             restored = ckptr.restore(path.absolute(), abstract)
     except Exception as e:  # Orbax raises many types for damaged or mismatched data
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
