@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
+from brax.training import types as brax_types
 from brax.training.agents.ppo import networks as ppo_networks
 
 from popsan_jax.config import RunConfig
@@ -139,12 +140,13 @@ class _HostUInt64:
 def _host_tree(tree: Any) -> Any:
     """``tree`` with NumPy leaves: under jax.distributed Orbax refuses to save a jax.Array that
     lives on one process ("host local jax.Array in multi-host setting")."""
-    tree = jax.device_get(tree)
-    state = tree["state"]
-    count = state.normalizer_params.count
-    count = _HostUInt64(hi=np.asarray(count.hi), lo=np.asarray(count.lo))
-    normalizer = state.normalizer_params.replace(count=count)
-    return {**tree, "state": state.replace(normalizer_params=normalizer)}
+
+    def host(x: Any) -> Any:
+        if isinstance(x, brax_types.UInt64):
+            return _HostUInt64(hi=np.asarray(x.hi), lo=np.asarray(x.lo))
+        return np.asarray(x)
+
+    return jax.tree.map(host, tree, is_leaf=lambda x: isinstance(x, brax_types.UInt64))
 
 
 def _check_finite(tree: Any, path: Path) -> None:
