@@ -36,7 +36,7 @@ from popsan_jax.config import RunConfig
 from popsan_jax.errors import ConfigError, NonFiniteError
 from popsan_jax.rollout import make_episode_runner
 from popsan_jax.snn.ops import sops_per_inference, spiking_layer_names
-from popsan_jax.training import checkpoint
+from popsan_jax.training import checkpoint, checkpoint_index
 from popsan_jax.training.iteration import (
     AXIS,
     TrainingState,
@@ -188,7 +188,7 @@ def train(
     def start() -> dict[str, Any]:
         """Process 0: lock the run, restore or warm-start its state."""
         nonlocal state, key
-        restart = resume and not checkpoint.index_path(run_dir).exists()
+        restart = resume and not checkpoint_index.index_path(run_dir).exists()
         if not resume or restart:
             if config.init_from:
                 state = warm_start(state, config, t.optimizer, environment)
@@ -213,7 +213,7 @@ def train(
     except OSError as e:  # ENOSPC, EROFS... writing the config, the metrics or TensorBoard's log
         if not main:
             raise
-        raise checkpoint.write_error(run_dir, e) from e
+        raise checkpoint_index.write_error(run_dir, e) from e
     finally:
         lock.release()
 
@@ -251,7 +251,7 @@ def _train_started(
     main = distributed.is_main()
     eval_index = started["eval_index"]
     if main:
-        config.to_json(run_dir / checkpoint.CONFIG)
+        config.to_json(run_dir / checkpoint_index.CONFIG)
     start_steps = int(state.env_steps)
     start_iteration = start_steps // config.env_steps_per_iteration
     episode_length = t.episode_length
@@ -334,7 +334,7 @@ def _train_started(
             if metrics.pop("finite") < 1.0:
                 kept = (
                     f"the last good checkpoint in {run_dir} is kept"
-                    if checkpoint.has_checkpoint(run_dir)
+                    if checkpoint_index.has_checkpoint(run_dir)
                     else f"{run_dir} has no checkpoint yet"
                 )
                 raise NonFiniteError(

@@ -11,7 +11,7 @@ from typing import Any
 from popsan_jax import distributed
 from popsan_jax.config import RunConfig, resolve_config
 from popsan_jax.errors import CheckpointError, ConfigError
-from popsan_jax.training.checkpoint import CONFIG, index_path, read_index
+from popsan_jax.training.checkpoint_index import CONFIG, index_path, read_index
 from popsan_jax.training.run_dir import check_name, check_runs_dir
 
 RESUMABLE = {"total_env_steps"}  # the only field a resumed run may change

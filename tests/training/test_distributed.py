@@ -17,7 +17,7 @@ import pytest
 
 from popsan_jax.distributed import Cluster, resolve_cluster
 from popsan_jax.errors import UserError
-from popsan_jax.training import checkpoint
+from popsan_jax.training import checkpoint_index
 
 ROOT = Path(__file__).resolve().parents[2]
 WORKER = Path(__file__).with_name("_dist_worker.py")
@@ -116,7 +116,7 @@ def test_two_processes_kill_resume_and_match_one_process(tmp_path):
         [*TINY, "--runs-dir", str(runs), "--name", "run"],
     )
     deadline = time.monotonic() + 400
-    while not checkpoint.has_checkpoint(run_dir):
+    while not checkpoint_index.has_checkpoint(run_dir):
         assert procs[0].poll() is None and procs[1].poll() is None, "a process ended early"
         assert time.monotonic() < deadline, "no checkpoint after 400 s"
         time.sleep(0.2)
@@ -129,8 +129,8 @@ def test_two_processes_kill_resume_and_match_one_process(tmp_path):
     assert f"the last checkpoint in {run_dir} is kept" in err
     print(f"process 0 stopped {time.monotonic() - t0:.1f} s after the kill")
     assert not (run_dir / "lock").exists()
-    index = checkpoint.read_index(run_dir)
-    assert all(checkpoint.verify_checkpoint(run_dir, index, e) for e in index["checkpoints"])
+    index = checkpoint_index.read_index(run_dir)
+    assert all(checkpoint_index.verify_checkpoint(run_dir, index, e) for e in index["checkpoints"])
     shutil.copytree(run_dir, ref_dir)
 
     # 2. the 2-process resume to the end, and 1 process x 2 devices from the same checkpoint
@@ -160,4 +160,4 @@ def test_two_processes_kill_resume_and_match_one_process(tmp_path):
     for a, b, c in zip(two0, two1, ref, strict=True):
         np.testing.assert_array_equal(a, b)
         np.testing.assert_array_equal(a, c)
-    assert int(checkpoint.read_index(run_dir)["last"]) == 3 * 1280
+    assert int(checkpoint_index.read_index(run_dir)["last"]) == 3 * 1280
