@@ -11,8 +11,8 @@ hook for logging and checkpointing. So this loop REUSES Brax's pieces instead of
 One training iteration (unroll, normaliser update, minibatch epochs) is a single pmapped
 function over ``jax.local_devices()`` (:mod:`popsan_jax.training.iteration`), whose
 collectives span every process under ``jax.distributed`` (:mod:`popsan_jax.distributed`); the
-host loop only
-logs, evaluates, checks for NaN and writes checkpoints between iterations.
+host loop only logs, evaluates (:mod:`popsan_jax.training.evaluation`), checks for NaN and writes
+checkpoints (:mod:`popsan_jax.training.checkpoint`) between iterations.
 """
 
 from __future__ import annotations
@@ -26,17 +26,15 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import jax.numpy as jnp
-import numpy as np
 from brax.envs.wrappers import training as brax_training
 from brax.training.agents.ppo import networks as ppo_networks
 
 from popsan_jax import distributed
 from popsan_jax.config import RunConfig
 from popsan_jax.errors import ConfigError, NonFiniteError
-from popsan_jax.rollout import make_episode_runner
-from popsan_jax.snn.ops import sops_per_inference, spiking_layer_names
 from popsan_jax.training import checkpoint, checkpoint_index
+from popsan_jax.training.diagnostics import make_diagnostics_fn
+from popsan_jax.training.evaluation import make_evaluate_fn
 from popsan_jax.training.iteration import (
     AXIS,
     TrainingState,
@@ -45,8 +43,8 @@ from popsan_jax.training.iteration import (
     stagger_episodes,
 )
 from popsan_jax.training.run_dir import RunLock, check_run_dir
-from popsan_jax.training.run_log import RunLogger, wandb_available
-from popsan_jax.training.setup import build_networks, make_env, make_optimizer, make_spikes_fn
+from popsan_jax.training.run_log import RunLogger, SilentLogger, wandb_available
+from popsan_jax.training.setup import build_networks, make_env, make_optimizer
 from popsan_jax.training.warm_start import warm_start
 
 
@@ -60,29 +58,6 @@ class TrainResult:
     last_eval: dict[str, Any] | None
     run_dir: Path
     finished: bool = False
-
-
-def make_diagnostics_fn(
-    config: RunConfig, networks: ppo_networks.PPONetworks, action_size: int
-) -> Callable[[TrainingState, jax.Array], dict[str, jax.Array]]:
-    """``fn(state, obs [B, O]) -> {entropy, firing_rate/<layer>, sops}`` on a sample of the
-    batch (``sops``: synaptic operations per inference, the energy convention's count)."""
-    spikes_fn = make_spikes_fn(config, action_size) if config.actor == "popsan" else None
-
-    def diagnostics(state: TrainingState, obs: jax.Array) -> dict[str, jax.Array]:
-        logits = networks.policy_network.apply(state.normalizer_params, state.params.policy, obs)
-        entropy = networks.parametric_action_distribution.entropy(logits, jax.random.PRNGKey(0))
-        out = {"entropy": jnp.mean(entropy)}
-        if spikes_fn is not None:
-            spikes = spikes_fn(state.params.policy, state.normalizer_params, obs)
-            names = spiking_layer_names(len(spikes) - 2)
-            out.update(
-                {f"firing_rate/{n}": jnp.mean(s) for n, s in zip(names, spikes, strict=True)}
-            )
-            out["sops"] = sops_per_inference(spikes)
-        return out
-
-    return diagnostics
 
 
 @dataclasses.dataclass
@@ -222,19 +197,6 @@ def _note(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
 
-class _Silent:
-    """The logger of every process but 0: it writes nothing."""
-
-    def log(self, kind: str, env_steps: int, metrics: dict[str, float]) -> dict[str, Any]:
-        return {"kind": kind, "env_steps": int(env_steps), **metrics}
-
-    def message(self, text: str) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
 def _train_started(
     t: Trainer,
     config: RunConfig,
@@ -257,29 +219,8 @@ def _train_started(
     episode_length = t.episode_length
 
     make_policy = ppo_networks.make_inference_fn(networks)
-    runner = make_episode_runner(
-        env,
-        lambda p: lambda obs, k: make_policy(p, deterministic=True)(obs, k)[0],
-        config.num_eval_envs,
-        episode_length=episode_length,
-    )
-
-    def evaluate(state: TrainingState, key: jax.Array) -> dict[str, float]:
-        """Deterministic-policy episodes on the unwrapped env (popsan_jax.rollout)."""
-        t0 = time.monotonic()
-        batch = jax.device_get(runner((state.normalizer_params, state.params.policy), key))
-        eval_s = time.monotonic() - t0
-        return {
-            "success_rate": float(np.mean(batch.success)),
-            "reached_rate": float(np.mean(batch.reached)),
-            "hold_time": float(np.mean(batch.hold_time)),
-            "episode_reward": float(np.mean(batch.ret)),
-            "episode_length": float(np.mean(batch.length)),
-            **{f"reward/{k}": float(np.mean(v)) for k, v in batch.terms.items()},
-            "steps_per_s": float(np.sum(batch.length)) / max(eval_s, 1e-9),
-        }
-
-    logger: Any = _Silent()
+    evaluate = make_evaluate_fn(env, networks, config.num_eval_envs, episode_length)
+    logger: Any = SilentLogger()
     if main:
         logger = RunLogger(
             run_dir,
