@@ -10,14 +10,21 @@ Flags override the preset, which overrides the backend defaults (popsan_jax/conf
 A run writes runs/<env>-<actor>-<timestamp or --name>/ (config.json, metrics.jsonl, tb/,
 checkpoints/). Bad input prints one line ``error: ...`` and exits 2; Ctrl-C, SIGINT (even if
 ignored) and SIGTERM stop the run, keep its last checkpoint and exit 130.
+
+Several processes (hosts or GPUs; jax.distributed): start one per host or GPU with
+``--coordinator HOST:PORT --num-processes N --process-id I``, or under SLURM (srun) / Open MPI
+with none of them. num_envs and batch sizes are global; process 0 writes the run. If another
+process dies, the rest print one line and exit 3; the last checkpoint is kept.
 """
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
+from typing import Any
 
-from popsan_jax.cli import given_flags, run_choices, stop_on_signals, train_parser
+from popsan_jax.cli import cluster_flags, given_flags, run_choices, stop_on_signals, train_parser
 from popsan_jax.errors import UserError
 
 
@@ -25,6 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     args = train_parser(__doc__).parse_args(argv)
     print("popsan-jax: starting (importing JAX, MJX)...", file=sys.stderr, flush=True)
     run_dir: Path | None = None
+    cluster = None
     with stop_on_signals():
         try:
             # Imported after the flags are parsed: JAX and MJX take seconds to import.
@@ -33,38 +41,62 @@ def main(argv: list[str] | None = None) -> int:
             import_mjx_quietly()  # before brax/MJX modules import it noisily
             import jax
 
+            from popsan_jax import distributed
             from popsan_jax.training import run
             from popsan_jax.training.loop import train
 
+            cluster = distributed.resolve_cluster(**cluster_flags(args))
+            if cluster is not None:  # before anything creates a JAX backend
+                distributed.initialize(cluster)
             enable_compilation_cache()
-            config, run_dir = run.prepare_run(
+            config, run_dir = run.prepare_run_everywhere(
                 jax.default_backend(), *given_flags(args), **run_choices(args)
             )
             result = train(config, run_dir, resume=bool(args.resume), progress=not args.no_progress)
         except UserError as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 2
+            return _stop(cluster, 2, f"error: {e}")
         except KeyboardInterrupt:
             # Imported here: an interrupt can come before the library was imported.
             from popsan_jax.training.run import interrupted_message
 
-            print(f"\n{interrupted_message(run_dir)}", file=sys.stderr)
-            return 130
-    if result.finished:  # resumed a run that had already reached its total
-        steps = int(result.state.env_steps)
-        print(
-            f"done: {run_dir} already finished at {steps} env steps; to train further: "
-            f"python train.py --resume {run_dir} --total-env-steps N (N > {steps})",
-            file=sys.stderr,
-        )
-        return 0
-    final = result.last_eval or {}
-    print(
-        f"done: {int(result.state.env_steps)} env steps, success rate "
-        f"{final.get('success_rate', float('nan')):.3f} -> {run_dir}",
-        file=sys.stderr,
-    )
+            return _stop(cluster, 130, f"\n{interrupted_message(run_dir)}")
+        except Exception as e:
+            if cluster is None or not distributed.peer_failure(e):
+                raise
+            return _stop(cluster, 3, f"error: {distributed.peer_lost_message(run_dir)}")
+    print(done_message(result, run_dir, jax.process_index(), jax.process_count()), file=sys.stderr)
     return 0
+
+
+def done_message(result: Any, run_dir: Path | None, process: int, processes: int) -> str:
+    """The last line of a run. Under jax.distributed only process 0 evaluates and writes the
+    run, so the others say which process they were and point there."""
+    steps = int(result.state.env_steps)
+    if process != 0:
+        return (
+            f"done: process {process} of {processes} ({steps} env steps); process 0 holds the "
+            f"results -> {run_dir}"
+        )
+    if result.finished:  # resumed a run that had already reached its total
+        return (
+            f"done: {run_dir} already finished at {steps} env steps; to train further: "
+            f"python train.py --resume {run_dir} --total-env-steps N (N > {steps})"
+        )
+    final = result.last_eval or {}
+    return (
+        f"done: {steps} env steps, success rate "
+        f"{final.get('success_rate', float('nan')):.3f} -> {run_dir}"
+    )
+
+
+def _stop(cluster: object, code: int, message: str) -> int:
+    """Print ``message``; under jax.distributed leave at once (os._exit): JAX's exit handler
+    waits at a barrier for every process, and a dead or stopped one never comes."""
+    print(message, file=sys.stderr, flush=True)
+    if cluster is not None:
+        sys.stdout.flush()
+        os._exit(code)
+    return code
 
 
 if __name__ == "__main__":

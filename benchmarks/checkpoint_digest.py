@@ -1,5 +1,5 @@
-"""What the checkpoint digest (SHA-256 over a checkpoint's files, popsan_jax/training/checkpoint.py)
-costs against the Orbax save and restore it guards.
+"""What the checkpoint digest (SHA-256 over a checkpoint's files,
+popsan_jax/training/checkpoint_index.py) costs against the Orbax save and restore it guards.
 
 Restores a committed pick checkpoint (default docs/reference/pick-popsan-s0's last), then,
 for ``--rounds`` rounds: saves it into a temporary run (Orbax write + digest + manifest), hashes
@@ -40,7 +40,7 @@ def main() -> None:
     import jax
 
     from popsan_jax.config import RunConfig
-    from popsan_jax.training import checkpoint
+    from popsan_jax.training import checkpoint, checkpoint_index
     from popsan_jax.training.iteration import init_training_state
     from popsan_jax.training.setup import build_networks, make_env, make_optimizer
 
@@ -67,12 +67,12 @@ def main() -> None:
             times["save (Orbax + digest + index)"].append(time.perf_counter() - t0)
             size = sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
             t0 = time.perf_counter()
-            checkpoint.checkpoint_digest(path)
+            checkpoint_index.checkpoint_digest(path)
             times["digest alone"].append(time.perf_counter() - t0)
             t0 = time.perf_counter()
             checkpoint.restore_checkpoint(out, template, "last")
             times["restore (digest + Orbax + finite)"].append(time.perf_counter() - t0)
-            index_path = checkpoint.checkpoint_dir(out) / checkpoint.INDEX
+            index_path = checkpoint_index.checkpoint_dir(out) / checkpoint_index.INDEX
             index = index_path.read_text()
             data = json.loads(index)
             for e in data["checkpoints"]:

@@ -107,6 +107,18 @@ def train_parser(description: str | None = None) -> argparse.ArgumentParser:
     add_env_override_flag(p, "env config override (repeatable)")
     p.add_argument("--wandb", action="store_true", default=None, help="also log to W&B")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    multi = p.add_argument_group(
+        "several processes (jax.distributed; default: SLURM, Open MPI or JAX's cluster detection)"
+    )
+    multi.add_argument("--coordinator", metavar="HOST:PORT", help="process 0's address")
+    multi.add_argument("--num-processes", type=int, metavar="N", help="processes in the run")
+    multi.add_argument("--process-id", type=int, metavar="I", help="this process, 0..N-1")
+    multi.add_argument(
+        "--heartbeat-timeout",
+        type=int,
+        metavar="S",
+        help="seconds after which a silent process is declared dead (default 100)",
+    )
     flags = {**config_flags(), **{k: (_actor_type(k), h) for k, h in ACTOR_FLAG_HELP.items()}}
     for name, (kind, text) in flags.items():
         p.add_argument("--" + name.replace("_", "-"), type=kind, help=text)
@@ -133,6 +145,16 @@ def run_choices(args: argparse.Namespace) -> dict[str, Any]:
         resume=args.resume,
         runs_dir=args.runs_dir,
         name=args.name,
+    )
+
+
+def cluster_flags(args: argparse.Namespace) -> dict[str, Any]:
+    """The keyword arguments of ``distributed.resolve_cluster`` from train.py's parsed flags."""
+    return dict(
+        coordinator=args.coordinator,
+        num_processes=args.num_processes,
+        process_id=args.process_id,
+        heartbeat_timeout=args.heartbeat_timeout,
     )
 
 

@@ -131,7 +131,8 @@ class RunConfig:
         return max(1, self.num_iterations // max(1, self.num_evals))
 
     def validate(self, device_count: int = 1) -> None:
-        """Raise :class:`ConfigError` (one line) for an impossible configuration."""
+        """Raise :class:`ConfigError` (one line) for an impossible configuration on
+        ``device_count`` devices (all devices of all processes: the sizes are global)."""
         if self.actor not in ACTORS:
             raise ConfigError(f"unknown actor {self.actor!r}; choose one of {', '.join(ACTORS)}")
         if self.lr_schedule not in LR_SCHEDULES:
@@ -175,11 +176,13 @@ class RunConfig:
             )
         if self.num_envs % device_count:
             raise ConfigError(
-                f"num_envs = {self.num_envs} must be divisible by the {device_count} local devices"
+                f"num_envs = {self.num_envs} must be divisible by the {device_count} devices "
+                f"(all devices of all processes)"
             )
         if self.batch_size % device_count:
             raise ConfigError(
-                f"batch_size = {self.batch_size} must be divisible by the {device_count} devices"
+                f"batch_size = {self.batch_size} must be divisible by the {device_count} devices "
+                f"(all devices of all processes)"
             )
 
     # ---- JSON ----------------------------------------------------------------------------

@@ -22,7 +22,7 @@ from _run_fixtures import (
 )
 
 from popsan_jax.analysis import report
-from popsan_jax.training import checkpoint, loop
+from popsan_jax.training import checkpoint_index, loop
 
 train_cli = load_script("train")
 eval_cli = load_script("eval")
@@ -185,10 +185,10 @@ def test_disk_full_during_training_names_the_last_good_checkpoint(
         assert "No space left on device" in line, line
         assert f"the last good checkpoint is step {2 * STEPS}" in line, line
         filler.unlink()
-        assert checkpoint.read_index(run)["last"] == 2 * STEPS
+        assert checkpoint_index.read_index(run)["last"] == 2 * STEPS
         assert not list((run / "checkpoints").glob("*tmp*"))  # no half-written checkpoint
         assert _main(train_cli, argv) == 0  # resumes once there is space
-        assert checkpoint.read_index(run)["last"] == 4 * STEPS
+        assert checkpoint_index.read_index(run)["last"] == 4 * STEPS
 
 
 def test_compare_out_unwritable(finished_toy_run, capsys):

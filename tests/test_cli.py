@@ -4,6 +4,7 @@ themselves run as a user runs them: bad input is one ``error:`` line and exit st
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import re
 import signal
@@ -11,6 +12,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -116,6 +118,29 @@ def test_entry_points_exit_2_with_one_error_line(argv, match, tmp_path):
     last = proc.stderr.strip().splitlines()[-1]
     assert re.search(match, last), last
     assert not runs.exists()
+
+
+def test_done_line_of_each_process():
+    """Only process 0 evaluates: the others name themselves and point there, not at NaN."""
+    spec = importlib.util.spec_from_file_location("train_cli", ROOT / "train.py")
+    train_py = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(train_py)
+    state = SimpleNamespace(env_steps=1280)
+    main = SimpleNamespace(state=state, finished=False, last_eval={"success_rate": 0.25})
+    other = SimpleNamespace(state=state, finished=False, last_eval=None)
+    run = Path("runs/r")
+    assert (
+        train_py.done_message(main, run, 0, 2)
+        == "done: 1280 env steps, success rate 0.250 -> runs/r"
+    )
+    for result in (other, SimpleNamespace(state=state, finished=True, last_eval=None)):
+        line = train_py.done_message(result, run, 1, 2)
+        assert (
+            line == "done: process 1 of 2 (1280 env steps); process 0 holds the results -> runs/r"
+        )
+    assert "already finished at 1280" in train_py.done_message(
+        SimpleNamespace(state=state, finished=True, last_eval=None), run, 0, 1
+    )
 
 
 @pytest.mark.slow

@@ -140,7 +140,7 @@ def test_resolve_errors(kwargs, actor_kwargs, match):
 def test_validate_messages():
     with pytest.raises(ConfigError, match=r"100 \* 3 = 300 must be divisible by num_envs = 64"):
         RunConfig(num_envs=64, batch_size=100, num_minibatches=3).validate()
-    with pytest.raises(ConfigError, match="divisible by the 3 local devices"):
+    with pytest.raises(ConfigError, match=r"by the 3 devices \(all devices of all processes\)"):
         RunConfig(num_envs=64, batch_size=64, num_minibatches=1).validate(3)
     with pytest.raises(ConfigError, match="unroll_length must be >= 1"):
         RunConfig(unroll_length=0).validate()

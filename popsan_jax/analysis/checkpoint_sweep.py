@@ -25,7 +25,8 @@ from typing import Any
 import jax
 
 from popsan_jax.analysis.evaluation import rollouts, summarize
-from popsan_jax.training.checkpoint import load_run, read_index
+from popsan_jax.training.checkpoint import load_run
+from popsan_jax.training.checkpoint_index import read_index
 
 
 def evaluate_checkpoints(

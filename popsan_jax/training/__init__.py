@@ -1,2 +1,3 @@
-"""Training: env and network setup, the jitted PPO iteration and its loss, the host loop,
-new-run-or-resume, checkpoints, warm start and the run log."""
+"""Training: env and network setup, the jitted PPO iteration, its loss and diagnostics, the host
+loop and its evaluations, new-run-or-resume, checkpoints and their manifest, warm start and the
+run log."""

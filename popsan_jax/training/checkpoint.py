@@ -1,18 +1,16 @@
-"""Checkpoints of a run directory, and :func:`load_run` for replay / evaluation.
+"""Checkpoints of a run directory (Orbax save and restore), and :func:`load_run` for replay /
+evaluation.
 
-(Warm-starting a new run from another run's checkpoint is a training rule:
-:mod:`popsan_jax.training.warm_start`.)
+(The manifest ``index.json``, its digests and the write errors that name the last good
+checkpoint: :mod:`popsan_jax.training.checkpoint_index`. Warm-starting a new run from another
+run's checkpoint is a training rule: :mod:`popsan_jax.training.warm_start`.)
 
-Layout under ``runs/<name>/checkpoints/``::
-
-    step_000000123456/   an Orbax PyTree checkpoint: {"state": TrainingState, "key": rng key}
-    index.json           the manifest: every kept checkpoint, plus "last" and "best"
-
-Atomicity: Orbax writes into a temporary directory and renames it when complete; the manifest
-is written to a temporary file and ``os.replace``-d, and only lists finished checkpoints.
-A crash at any point therefore leaves the previous manifest and everything it names intact.
-Pruning keeps every ``keep_every_n_evals``-th evaluation, the last, and the best by success
-rate; directories are deleted only after the manifest that drops them is in place.
+A checkpoint is ``checkpoints/step_000000123456/``, an Orbax PyTree checkpoint
+``{"state": TrainingState, "key": rng key}``. Atomicity: Orbax writes into a temporary directory
+and renames it when complete, and the manifest lists only finished checkpoints, so a crash at
+any point leaves the previous manifest and everything it names intact. Pruning keeps every
+``keep_every_n_evals``-th evaluation, the last, and the best by success rate; directories are
+deleted only after the manifest that drops them is in place.
 
 A checkpoint restores into a template built from the saved ``config.json``, so shapes, the
 optimiser structure and the normaliser are checked against the config; any mismatch or damage
@@ -25,96 +23,68 @@ import contextlib
 import dataclasses
 import errno
 import gc
-import hashlib
-import json
 import logging
 import os
-import re
 import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
+from brax.training import types as brax_types
 from brax.training.agents.ppo import networks as ppo_networks
 
 from popsan_jax.config import RunConfig
 from popsan_jax.errors import CheckpointError, ConfigError
-from popsan_jax.io import write_json
-from popsan_jax.schema import check_index
+from popsan_jax.training.checkpoint_index import (
+    CONFIG,
+    checkpoint_digest,
+    checkpoint_dir,
+    find_entry,
+    first_line,
+    index_path,
+    last_good,
+    read_index,
+    verify_checkpoint,
+    write_index,
+)
 from popsan_jax.training.iteration import init_training_state
 from popsan_jax.training.run_dir import checkpoint_name, contained, deferred_signals
 from popsan_jax.training.setup import build_networks, make_env, make_optimizer
 
-INDEX = "index.json"
-CONFIG = "config.json"
+
+def _checkpointer() -> ocp.Checkpointer:
+    """An Orbax checkpointer that acts for this process alone. Under jax.distributed only
+    process 0 saves and restores; Orbax's default cross-process barriers would wait for
+    processes that never call it (orbax #211)."""
+    me = jax.process_index()
+    options = ocp.options.MultiprocessingOptions(primary_host=me, active_processes={me})
+    return ocp.Checkpointer(ocp.StandardCheckpointHandler(), multiprocessing_options=options)
 
 
-def checkpoint_digest(path: str | os.PathLike) -> str:
-    """``sha256:<hex>`` over every file under ``path`` (relative names and contents, in sorted
-    order); links are not followed, and a link or special file is an error."""
-    root = Path(path)
-    h = hashlib.sha256()
-    files = []
-    for dirpath, dirnames, filenames in os.walk(root):
-        dirnames.sort()
-        for name in dirnames + filenames:
-            p = Path(dirpath, name)
-            if p.is_symlink():
-                raise CheckpointError(f"checkpoint {root} contains a link {p}; refused")
-        files.extend(Path(dirpath, name) for name in filenames)
-    for p in sorted(files, key=lambda q: q.relative_to(root).as_posix()):
-        rel = p.relative_to(root).as_posix().encode()
-        h.update(len(rel).to_bytes(8, "little") + rel)
-        with open(p, "rb") as f:
-            h.update(os.fstat(f.fileno()).st_size.to_bytes(8, "little"))
-            for block in iter(lambda f=f: f.read(1 << 20), b""):
-                h.update(block)
-    return "sha256:" + h.hexdigest()
+@flax.struct.dataclass
+class _HostUInt64:
+    """Brax's ``UInt64`` (the normaliser's count) with the same fields but NumPy leaves: Brax's
+    own turns them back into jax arrays whenever it is built (``__post_init__``)."""
+
+    hi: Any
+    lo: Any
 
 
-def _intact_others(run_dir: Path, index: dict[str, Any], step: int) -> list[int]:
-    """Steps of the other listed checkpoints whose digest matches (unverifiable ones too)."""
-    good = []
-    for e in index["checkpoints"]:
-        if e["step"] == step:
-            continue
-        try:
-            path = contained(checkpoint_dir(run_dir), e["dir"])
-            if "digest" not in e or checkpoint_digest(path) == e["digest"]:
-                good.append(e["step"])
-        except (OSError, CheckpointError):
-            continue
-    return good
+def _host_tree(tree: Any) -> Any:
+    """``tree`` with NumPy leaves: under jax.distributed Orbax refuses to save a jax.Array that
+    lives on one process ("host local jax.Array in multi-host setting")."""
 
+    def host(x: Any) -> Any:
+        if isinstance(x, brax_types.UInt64):
+            return _HostUInt64(hi=np.asarray(x.hi), lo=np.asarray(x.lo))
+        return np.asarray(x)
 
-def verify_checkpoint(
-    run_dir: str | os.PathLike, index: dict[str, Any], entry: dict[str, Any]
-) -> bool:
-    """Check ``entry``'s files against its manifest digest; False when it has none (a manifest
-    written before digests: unverified). A mismatch raises one CheckpointError line naming the
-    checkpoint and the intact alternatives."""
-    if "digest" not in entry:
-        return False
-    path = contained(checkpoint_dir(run_dir), entry["dir"])
-    try:
-        actual = checkpoint_digest(path)
-    except OSError as e:
-        actual = f"unreadable ({e.strerror or e})"
-    if actual == entry["digest"]:
-        return True
-    others = _intact_others(Path(run_dir), index, entry["step"])
-    if others:
-        best = " or --best" if index["best"] in others else ""
-        hint = "intact: " + ", ".join(f"--step {s}" for s in others) + best
-    else:
-        hint = "no other checkpoint is intact"
-    raise CheckpointError(
-        f"checkpoint {path} is damaged: its files do not match the digest in {INDEX}; {hint}"
-    )
+    return jax.tree.map(host, tree, is_leaf=lambda x: isinstance(x, brax_types.UInt64))
 
 
 def _check_finite(tree: Any, path: Path) -> None:
@@ -123,44 +93,6 @@ def _check_finite(tree: Any, path: Path) -> None:
         if np.issubdtype(leaf.dtype, np.floating) and not np.all(np.isfinite(leaf)):
             name = jax.tree_util.keystr(leaf_path)
             raise CheckpointError(f"checkpoint {path} holds non-finite values in {name}; refused")
-
-
-def checkpoint_dir(run_dir: str | os.PathLike) -> Path:
-    return Path(run_dir) / "checkpoints"
-
-
-def index_path(run_dir: str | os.PathLike) -> Path:
-    """The run's checkpoint manifest; whether the file exists tells a run that has written a
-    checkpoint (or tried to) from one killed before its first."""
-    return checkpoint_dir(run_dir) / INDEX
-
-
-def read_index(run_dir: str | os.PathLike) -> dict[str, Any]:
-    """The manifest ``{"checkpoints": [{"step", "eval_index", "success_rate", "dir", "digest"}],
-    "last", "best"}``; raises CheckpointError when missing, unreadable or off its schema."""
-    path = index_path(run_dir)
-    if not Path(run_dir).is_dir():
-        raise CheckpointError(f"run directory {run_dir} does not exist")
-    try:
-        index = json.loads(path.read_text())
-    except FileNotFoundError as e:
-        raise CheckpointError(f"no checkpoint in {run_dir} (missing {path})") from e
-    except (OSError, ValueError) as e:  # ValueError: bad JSON, or bytes that are not UTF-8
-        raise CheckpointError(f"corrupt checkpoint index {path}: {e}") from e
-    return check_index(index, path)  # popsan_jax/schema.py
-
-
-def has_checkpoint(run_dir: str | os.PathLike) -> bool:
-    """Whether ``run_dir`` has a readable manifest listing a checkpoint."""
-    try:
-        read_index(run_dir)
-    except CheckpointError:
-        return False
-    return True
-
-
-def _write_index(run_dir: Path, index: dict[str, Any]) -> None:
-    write_json(index_path(run_dir), index)
 
 
 def save_checkpoint(
@@ -194,10 +126,10 @@ def save_checkpoint(
         try:
             root.mkdir(parents=True, exist_ok=True)
             _check_free_space(root, (state, key))
-            with ocp.Checkpointer(ocp.StandardCheckpointHandler()) as ckptr:
+            with _checkpointer() as ckptr:
                 # force: a directory left by a crash between the Orbax write and the manifest
                 # update is not listed anywhere and may be overwritten.
-                ckptr.save(root / name, {"state": state, "key": key}, force=True)
+                ckptr.save(root / name, _host_tree({"state": state, "key": key}), force=True)
             entries = [e for e in index["checkpoints"] if e["step"] != step]
             entries.append(
                 dict(
@@ -214,12 +146,12 @@ def save_checkpoint(
                 for e in entries
                 if e["step"] in (step, best["step"]) or e["eval_index"] % keep_every_n_evals == 0
             ]
-            _write_index(run_dir, {"checkpoints": kept, "last": step, "best": best["step"]})
+            write_index(run_dir, {"checkpoints": kept, "last": step, "best": best["step"]})
         except Exception as e:  # ENOSPC, EROFS...: Orbax wraps them in many types
             for tmp in root.glob(f"{name}.orbax-checkpoint-tmp*"):
                 shutil.rmtree(tmp, ignore_errors=True)
             raise CheckpointError(
-                f"cannot write checkpoint {root / name}: {first_line(e)}; {_last_good(index)}"
+                f"cannot write checkpoint {root / name}: {first_line(e)}; {last_good(index)}"
             ) from e
         for e in entries:
             if e not in kept:
@@ -255,68 +187,19 @@ def _check_free_space(root: Path, tree: Any) -> None:
         raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({free} bytes free)")
 
 
-def _last_good(index: dict[str, Any]) -> str:
-    last = index.get("last")
-    if last is None:
-        return "no checkpoint was written yet"
-    return f"the last good checkpoint is step {last}"
-
-
-def write_error(run_dir: str | os.PathLike, e: BaseException) -> CheckpointError:
-    """One line for a failed write into ``run_dir`` (disk full, read-only...), naming the last
-    good checkpoint to resume from."""
-    try:
-        index = read_index(run_dir)
-    except CheckpointError:
-        index = {}
-    return CheckpointError(
-        f"cannot write to {run_dir}: {first_line(e)}; {_last_good(index)}; free the space or "
-        f"fix the permissions, then: python train.py --resume {run_dir}"
-    )
-
-
-def first_line(e: BaseException) -> str:
-    """The OS's wording of the error under ``e`` (Orbax and tensorstore wrap it), else its first
-    line."""
-    cause: BaseException | None = e
-    while cause is not None:
-        if isinstance(cause, OSError) and cause.strerror:
-            return cause.strerror
-        cause = cause.__cause__ or cause.__context__
-    code = re.search(r"os_error_code='?(\d+)", str(e))  # tensorstore's wording of an OSError
-    if code:
-        return os.strerror(int(code.group(1)))
-    text = str(e).strip().splitlines()
-    return (text[0] if text else type(e).__name__)[:300]
-
-
-def _entry(index: dict[str, Any], which: str | int) -> dict[str, Any]:
-    if which in ("last", "best"):
-        step = index[which]
-    elif isinstance(which, int):
-        step = which
-    else:
-        raise CheckpointError(f"unknown checkpoint {which!r}; use 'last', 'best' or a step")
-    for e in index["checkpoints"]:
-        if e["step"] == step:
-            return e
-    steps = ", ".join(str(e["step"]) for e in index["checkpoints"])
-    raise CheckpointError(f"no checkpoint at step {step}; available: {steps}")
-
-
 def restore_checkpoint(
     run_dir: str | os.PathLike, template: Any, which: str | int = "last"
 ) -> tuple[Any, jax.Array, dict[str, Any]]:
     """Restore ``(state, key, manifest entry)`` into the structure of ``template`` (a fresh
     TrainingState from the same config)."""
     index = read_index(run_dir)
-    entry = _entry(index, which)
+    entry = find_entry(index, which)
     path = contained(checkpoint_dir(run_dir), entry.get("dir"))
     verify_checkpoint(run_dir, index, entry)  # old manifests without digests load unverified
     target = {"state": template, "key": jax.random.PRNGKey(0)}
     abstract = jax.tree.map(lambda x: ocp.utils.to_shape_dtype_struct(jnp.asarray(x)), target)
     try:
-        with deferred_signals(), ocp.Checkpointer(ocp.StandardCheckpointHandler()) as ckptr:
+        with deferred_signals(), _checkpointer() as ckptr:
             restored = ckptr.restore(path.absolute(), abstract)
     except Exception as e:  # Orbax raises many types for damaged or mismatched data
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__

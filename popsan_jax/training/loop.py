@@ -9,8 +9,10 @@ hook for logging and checkpointing. So this loop REUSES Brax's pieces instead of
 ``gradients.gradient_update_fn``, ``envs.wrappers.training.wrap`` and ``ppo.networks``.
 
 One training iteration (unroll, normaliser update, minibatch epochs) is a single pmapped
-function over ``jax.local_devices()`` (:mod:`popsan_jax.training.iteration`); the host loop only
-logs, evaluates, checks for NaN and writes checkpoints between iterations.
+function over ``jax.local_devices()`` (:mod:`popsan_jax.training.iteration`), whose
+collectives span every process under ``jax.distributed`` (:mod:`popsan_jax.distributed`); the
+host loop only logs, evaluates (:mod:`popsan_jax.training.evaluation`), checks for NaN and writes
+checkpoints (:mod:`popsan_jax.training.checkpoint`) between iterations.
 """
 
 from __future__ import annotations
@@ -24,16 +26,15 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import jax.numpy as jnp
-import numpy as np
 from brax.envs.wrappers import training as brax_training
 from brax.training.agents.ppo import networks as ppo_networks
 
+from popsan_jax import distributed
 from popsan_jax.config import RunConfig
 from popsan_jax.errors import ConfigError, NonFiniteError
-from popsan_jax.rollout import make_episode_runner
-from popsan_jax.snn.ops import sops_per_inference, spiking_layer_names
-from popsan_jax.training import checkpoint
+from popsan_jax.training import checkpoint, checkpoint_index
+from popsan_jax.training.diagnostics import make_diagnostics_fn
+from popsan_jax.training.evaluation import make_evaluate_fn
 from popsan_jax.training.iteration import (
     AXIS,
     TrainingState,
@@ -42,8 +43,8 @@ from popsan_jax.training.iteration import (
     stagger_episodes,
 )
 from popsan_jax.training.run_dir import RunLock, check_run_dir
-from popsan_jax.training.run_log import RunLogger, wandb_available
-from popsan_jax.training.setup import build_networks, make_env, make_optimizer, make_spikes_fn
+from popsan_jax.training.run_log import RunLogger, SilentLogger, wandb_available
+from popsan_jax.training.setup import build_networks, make_env, make_optimizer
 from popsan_jax.training.warm_start import warm_start
 
 
@@ -57,29 +58,6 @@ class TrainResult:
     last_eval: dict[str, Any] | None
     run_dir: Path
     finished: bool = False
-
-
-def make_diagnostics_fn(
-    config: RunConfig, networks: ppo_networks.PPONetworks, action_size: int
-) -> Callable[[TrainingState, jax.Array], dict[str, jax.Array]]:
-    """``fn(state, obs [B, O]) -> {entropy, firing_rate/<layer>, sops}`` on a sample of the
-    batch (``sops``: synaptic operations per inference, the energy convention's count)."""
-    spikes_fn = make_spikes_fn(config, action_size) if config.actor == "popsan" else None
-
-    def diagnostics(state: TrainingState, obs: jax.Array) -> dict[str, jax.Array]:
-        logits = networks.policy_network.apply(state.normalizer_params, state.params.policy, obs)
-        entropy = networks.parametric_action_distribution.entropy(logits, jax.random.PRNGKey(0))
-        out = {"entropy": jnp.mean(entropy)}
-        if spikes_fn is not None:
-            spikes = spikes_fn(state.params.policy, state.normalizer_params, obs)
-            names = spiking_layer_names(len(spikes) - 2)
-            out.update(
-                {f"firing_rate/{n}": jnp.mean(s) for n, s in zip(names, spikes, strict=True)}
-            )
-            out["sops"] = sops_per_inference(spikes)
-        return out
-
-    return diagnostics
 
 
 @dataclasses.dataclass
@@ -99,9 +77,10 @@ class Trainer:
 
 
 def build_trainer(config: RunConfig, environment: Any = None) -> Trainer:
-    """Validate ``config`` against the local devices and build the training pieces."""
+    """Validate ``config`` against all devices of all processes (the sizes are global) and
+    build the training pieces; the pmapped functions run on this process's local devices."""
     devices = jax.local_devices()
-    config.validate(len(devices))
+    config.validate(jax.device_count())
     env = environment if environment is not None else make_env(config)
     episode_length = config.episode_length or int(env.config.episode_length)
     wrapped = brax_training.wrap(env, episode_length=episode_length, action_repeat=1)
@@ -133,7 +112,9 @@ def _stagger(t: Trainer, make_policy: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def _unreplicate(tree: Any) -> Any:
-    return jax.tree.map(lambda x: x[0], tree)
+    """The first local device's copy of a pmapped tree (under jax.distributed the arrays span
+    every process, and only the local copies can be read)."""
+    return jax.tree.map(lambda x: x.addressable_data(0).reshape(x.shape[1:]), tree)
 
 
 def train(
@@ -157,30 +138,57 @@ def train(
     if it is killed again); a resumed run with no checkpoint yet trains again from step 0; a
     resumed run that is already finished returns at once with ``finished``. A failed write
     (disk full, read-only) is one CheckpointError line naming the last good checkpoint.
+
+    Under jax.distributed every process calls this with the same arguments; process 0 alone
+    touches ``run_dir`` (lock, checks, restore, config, metrics, evaluation, checkpoints) and
+    its errors stop every process (popsan_jax/distributed.py).
     """
     run_dir = Path(run_dir)
-    if config.wandb and not wandb_available():  # before anything is written
-        raise ConfigError(
-            "--wandb needs the wandb package (pip install wandb); it is not installed"
-        )
-    check_run_dir(run_dir, resume)  # writable, metrics.jsonl on its schema: before compiling
+    main = distributed.is_main()
+    lock = RunLock(run_dir, note=_note)
+
+    def check() -> None:
+        if config.wandb and not wandb_available():  # before anything is written
+            raise ConfigError(
+                "--wandb needs the wandb package (pip install wandb); it is not installed"
+            )
+        check_run_dir(run_dir, resume)  # writable, metrics.jsonl on its schema: before compiling
+
+    distributed.share_from_main("checked", check)
     t = build_trainer(config, environment)
     key = jax.random.PRNGKey(config.seed)
     key, key_init = jax.random.split(key)
     state = init_training_state(config, t.networks, t.optimizer, t.env.observation_size, key_init)
-    restart = resume and not checkpoint.index_path(run_dir).exists()
-    if not resume or restart:
-        if config.init_from:
-            state = warm_start(state, config, t.optimizer, environment)
-        run_dir.mkdir(parents=True, exist_ok=True)
-    lock = RunLock(run_dir, note=_note)
-    lock.acquire()
+
+    def start() -> dict[str, Any]:
+        """Process 0: lock the run, restore or warm-start its state."""
+        nonlocal state, key
+        restart = resume and not checkpoint_index.index_path(run_dir).exists()
+        if not resume or restart:
+            if config.init_from:
+                state = warm_start(state, config, t.optimizer, environment)
+            run_dir.mkdir(parents=True, exist_ok=True)
+        lock.acquire()
+        if restart:
+            _note(f"note: {run_dir} has no checkpoint yet; training it again from step 0")
+        elif resume:
+            state, key, entry = checkpoint.restore_checkpoint(run_dir, state, "last")
+            return {"eval_index": entry["eval_index"], "restart": False, "resume": True}
+        return {"eval_index": 0, "restart": restart, "resume": False}
+
     try:
-        return _train_locked(
-            t, config, run_dir, state, key, resume, restart, progress, on_iteration
-        )
+        started = distributed.share_from_main("started", start)
+        distributed.barrier("started")  # the broadcast is the first collective
+        # NumPy on every process: one set of types (no weak types), so a resumed run compiles
+        # the iteration for the same types as a new one.
+        state, key = distributed.broadcast_from_main((state, key))
+        if int(state.env_steps) >= config.num_iterations * config.env_steps_per_iteration:
+            return TrainResult(state=state, key=key, last_eval=None, run_dir=run_dir, finished=True)
+        return _train_started(t, config, run_dir, state, key, started, progress, on_iteration)
     except OSError as e:  # ENOSPC, EROFS... writing the config, the metrics or TensorBoard's log
-        raise checkpoint.write_error(run_dir, e) from e
+        if not main:
+            raise
+        raise checkpoint_index.write_error(run_dir, e) from e
     finally:
         lock.release()
 
@@ -189,104 +197,85 @@ def _note(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
 
-def _train_locked(
+def _train_started(
     t: Trainer,
     config: RunConfig,
     run_dir: Path,
     state: TrainingState,
     key: jax.Array,
-    resume: bool,
-    restart: bool,
+    started: dict[str, Any],
     progress: bool,
     on_iteration: Callable[[int, dict[str, float]], None] | None,
 ) -> TrainResult:
-    """The body of :func:`train`, with the run's lock held."""
+    """The body of :func:`train` once every process holds the start state (process 0 holds
+    the run's lock)."""
     env, networks, devices = t.env, t.networks, t.devices
-    eval_index = 0
-    if restart:
-        _note(f"note: {run_dir} has no checkpoint yet; training it again from step 0")
-        resume = False
-    elif resume:
-        state, key, entry = checkpoint.restore_checkpoint(run_dir, state, "last")
-        eval_index = entry["eval_index"]
-        if int(state.env_steps) >= config.num_iterations * config.env_steps_per_iteration:
-            return TrainResult(state=state, key=key, last_eval=None, run_dir=run_dir, finished=True)
-    config.to_json(run_dir / checkpoint.CONFIG)
+    main = distributed.is_main()
+    eval_index = started["eval_index"]
+    if main:
+        config.to_json(run_dir / checkpoint_index.CONFIG)
     start_steps = int(state.env_steps)
     start_iteration = start_steps // config.env_steps_per_iteration
-    iteration, episode_length = t.iteration, t.episode_length
+    episode_length = t.episode_length
 
     make_policy = ppo_networks.make_inference_fn(networks)
-    runner = make_episode_runner(
-        env,
-        lambda p: lambda obs, k: make_policy(p, deterministic=True)(obs, k)[0],
-        config.num_eval_envs,
-        episode_length=episode_length,
-    )
-
-    def evaluate(state: TrainingState, key: jax.Array) -> dict[str, float]:
-        """Deterministic-policy episodes on the unwrapped env (popsan_jax.rollout)."""
-        t0 = time.monotonic()
-        batch = jax.device_get(runner((state.normalizer_params, state.params.policy), key))
-        eval_s = time.monotonic() - t0
-        return {
-            "success_rate": float(np.mean(batch.success)),
-            "reached_rate": float(np.mean(batch.reached)),
-            "hold_time": float(np.mean(batch.hold_time)),
-            "episode_reward": float(np.mean(batch.ret)),
-            "episode_length": float(np.mean(batch.length)),
-            **{f"reward/{k}": float(np.mean(v)) for k, v in batch.terms.items()},
-            "steps_per_s": float(np.sum(batch.length)) / max(eval_s, 1e-9),
-        }
-
-    logger = RunLogger(
-        run_dir,
-        config.num_iterations * config.env_steps_per_iteration,
-        initial_steps=start_steps,
-        config=config.to_dict(),
-        use_wandb=config.wandb,
-        progress=progress,
-        restart=restart,
-    )
+    evaluate = make_evaluate_fn(env, networks, config.num_eval_envs, episode_length)
+    logger: Any = SilentLogger()
+    if main:
+        logger = RunLogger(
+            run_dir,
+            config.num_iterations * config.env_steps_per_iteration,
+            initial_steps=start_steps,
+            config=config.to_dict(),
+            use_wandb=config.wandb,
+            progress=progress,
+            restart=started["restart"],
+        )
     try:
         logger.message(
             f"compiling: {config.actor} actor on {config.env}, {config.num_envs} envs on "
-            f"{len(devices)} {jax.default_backend()} device(s), "
+            f"{jax.device_count()} {jax.default_backend()} device(s)"
+            f"{distributed.processes_note()}, "
             f"{config.env_steps_per_iteration} env steps/iteration, "
             f"{config.num_iterations} iterations (starting at {start_iteration}) -> {run_dir}"
         )
-        if config.init_from and not resume:
+        if config.init_from and not started["resume"]:
             logger.message(
                 f"initialised from {config.init_from} ({config.init_checkpoint} checkpoint)"
             )
         key, key_env = jax.random.split(key)
-        env_keys = jax.random.split(key_env, config.num_envs).reshape(len(devices), -1, 2)
+        env_keys = distributed.local_slice(jax.random.split(key_env, config.num_envs))
         env_state = jax.pmap(t.wrapped.reset)(env_keys)
         last_eval = None
         if start_steps == 0:  # the untrained policy's baseline starts every learning curve
             key, key_eval = jax.random.split(key)
-            last_eval = logger.log("eval", 0, evaluate(state, key_eval))
+            if main:
+                last_eval = logger.log("eval", 0, evaluate(state, key_eval))
         state_r = jax.device_put_replicated(state, devices)
         del state
         if start_steps or config.init_from:  # a trained policy: see stagger_episodes
             logger.message("trained policy: spreading the envs over episode phases (not counted)")
             key, key_stagger = jax.random.split(key)
             env_state = _stagger(t, make_policy)(
-                state_r, env_state, jax.random.split(key_stagger, len(devices))
+                state_r, env_state, distributed.device_keys(key_stagger)
             )
+        # Compiled ahead, then every process meets: a collective's first call waits only
+        # seconds for its peers, less than one process's compile may take.
+        iteration = t.iteration.lower(state_r, env_state, distributed.device_keys(key)).compile()
+        distributed.barrier("compiled")
         for it in range(start_iteration, config.num_iterations):
             key, key_it = jax.random.split(key)
             t0 = time.monotonic()
             state_r, env_state, metrics = iteration(
-                state_r, env_state, jax.random.split(key_it, len(devices))
+                state_r, env_state, distributed.device_keys(key_it)
             )
-            metrics = {k: float(v[0]) for k, v in jax.device_get(metrics).items()}
+            metrics = {k: float(v) for k, v in jax.device_get(_unreplicate(metrics)).items()}
             elapsed = time.monotonic() - t0
-            steps = int(jax.device_get(state_r.env_steps[0]))
+            steps = int(jax.device_get(_unreplicate(state_r.env_steps)))
             if metrics.pop("finite") < 1.0:
                 kept = (
                     f"the last good checkpoint in {run_dir} is kept"
-                    if checkpoint.has_checkpoint(run_dir)
+                    if checkpoint_index.has_checkpoint(run_dir)
                     else f"{run_dir} has no checkpoint yet"
                 )
                 raise NonFiniteError(
@@ -301,16 +290,18 @@ def _train_locked(
                 continue
             state = _unreplicate(state_r)
             key, key_eval = jax.random.split(key)
-            last_eval = logger.log("eval", steps, evaluate(state, key_eval))
             eval_index += 1
-            checkpoint.save_checkpoint(
-                run_dir,
-                state,
-                key,
-                eval_index,
-                last_eval["success_rate"],
-                config.keep_every_n_evals,
-            )
+            if main:
+                last_eval = logger.log("eval", steps, evaluate(state, key_eval))
+                checkpoint.save_checkpoint(
+                    run_dir,
+                    state,
+                    key,
+                    eval_index,
+                    last_eval["success_rate"],
+                    config.keep_every_n_evals,
+                )
+            distributed.barrier("evaluated")  # the others wait here, not in a collective
         final = _unreplicate(state_r)
     finally:
         with contextlib.suppress(OSError):  # a full disk: the error in flight says so

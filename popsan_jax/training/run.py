@@ -3,13 +3,15 @@ is written, and what an interrupted run leaves behind."""
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Any
 
+from popsan_jax import distributed
 from popsan_jax.config import RunConfig, resolve_config
 from popsan_jax.errors import CheckpointError, ConfigError
-from popsan_jax.training.checkpoint import CONFIG, index_path, read_index
+from popsan_jax.training.checkpoint_index import CONFIG, index_path, read_index
 from popsan_jax.training.run_dir import check_name, check_runs_dir
 
 RESUMABLE = {"total_env_steps"}  # the only field a resumed run may change
@@ -108,3 +110,17 @@ def prepare_run(
     if wandb:
         given["wandb"] = True
     return new_run(preset, backend, given, actor_given or {}, runs_dir, name)
+
+
+def prepare_run_everywhere(
+    backend: str, given: dict[str, Any], actor_given: dict[str, Any] | None = None, **choices: Any
+) -> tuple[RunConfig, Path]:
+    """:func:`prepare_run` on process 0 and its result on every process (one process: just
+    prepare_run's); process 0's UserError stops every process (popsan_jax.distributed)."""
+
+    def on_main() -> dict[str, Any]:
+        config, run_dir = prepare_run(backend, given, actor_given, **choices)
+        return {"config": json.loads(json.dumps(config.to_dict())), "run_dir": str(run_dir)}
+
+    shared = distributed.share_from_main("run", on_main)
+    return RunConfig.from_dict(shared["config"]), Path(shared["run_dir"])

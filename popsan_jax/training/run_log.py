@@ -140,6 +140,19 @@ class RunLogger:
             self._wandb.finish()
 
 
+class SilentLogger:
+    """The logger of every process but 0 under jax.distributed: it writes nothing."""
+
+    def log(self, kind: str, env_steps: int, metrics: dict[str, float]) -> dict[str, Any]:
+        return {"kind": kind, "env_steps": int(env_steps), **metrics}
+
+    def message(self, text: str) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
 def _plain(value: Any) -> Any:
     """JSON-safe Python scalars (NaN/inf become strings so the JSONL stays valid JSON)."""
     try:

@@ -13,7 +13,7 @@ from _report import run_eval
 
 from popsan_jax.analysis.video import GL_BACKENDS
 from popsan_jax.config import resolve_config
-from popsan_jax.training import checkpoint
+from popsan_jax.training import checkpoint, checkpoint_index
 from popsan_jax.training.iteration import init_training_state
 from popsan_jax.training.setup import build_networks, make_env, make_optimizer
 
@@ -24,7 +24,7 @@ def pick_run(tmp_path_factory):
     env = make_env(config)
     run_dir = tmp_path_factory.mktemp("pick").resolve() / "franka_pick-popsan-untrained"
     run_dir.mkdir()
-    config.to_json(run_dir / checkpoint.CONFIG)
+    config.to_json(run_dir / checkpoint_index.CONFIG)
     nets = build_networks(config, env.observation_size, env.action_size)
     state = init_training_state(
         config, nets, make_optimizer(config), env.observation_size, jax.random.PRNGKey(0)

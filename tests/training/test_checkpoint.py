@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from popsan_jax.errors import CheckpointError
-from popsan_jax.training import checkpoint
+from popsan_jax.training import checkpoint, checkpoint_index
 
 
 @flax.struct.dataclass
@@ -26,7 +26,7 @@ def test_manifest_keeps_every_nth_last_and_best(tmp_path):
     for i, s in enumerate(successes, start=1):
         state = _FakeState(w=jnp.full((2,), float(i)), env_steps=jnp.int32(100 * i))
         checkpoint.save_checkpoint(tmp_path, state, jax.random.PRNGKey(i), i, s, 2)
-    index = checkpoint.read_index(tmp_path)
+    index = checkpoint_index.read_index(tmp_path)
     # every 2nd eval (2, 4), the best (eval 2, success 0.9) and the last (eval 5)
     assert [e["step"] for e in index["checkpoints"]] == [200, 400, 500]
     assert index["last"] == 500 and index["best"] == 200
@@ -43,13 +43,13 @@ def test_manifest_keeps_every_nth_last_and_best(tmp_path):
 
 def test_missing_and_corrupt_checkpoints_raise_checkpoint_error(tmp_path):
     with pytest.raises(CheckpointError, match="does not exist"):
-        checkpoint.read_index(tmp_path / "nope")
+        checkpoint_index.read_index(tmp_path / "nope")
     with pytest.raises(CheckpointError, match="no checkpoint in"):
-        checkpoint.read_index(tmp_path)
+        checkpoint_index.read_index(tmp_path)
     (tmp_path / "checkpoints").mkdir()
     (tmp_path / "checkpoints" / "index.json").write_text("{not json")
     with pytest.raises(CheckpointError, match="corrupt checkpoint index"):
-        checkpoint.read_index(tmp_path)
+        checkpoint_index.read_index(tmp_path)
     state = _FakeState(w=jnp.ones(2), env_steps=jnp.int32(7))
     (tmp_path / "checkpoints" / "index.json").unlink()
     path = checkpoint.save_checkpoint(tmp_path, state, jax.random.PRNGKey(0), 1, 0.0, 1)
@@ -81,5 +81,5 @@ def test_index_names_only_finished_checkpoints(tmp_path):
     np.testing.assert_array_equal(restored.w, [7.0, 7.0])
     assert entry.pop("digest").startswith("sha256:")
     assert entry == {"step": 200, "eval_index": 2, "success_rate": 0.1, "dir": stray.name}
-    assert checkpoint.read_index(tmp_path)["best"] == 100
+    assert checkpoint_index.read_index(tmp_path)["best"] == 100
     assert not (tmp_path / "checkpoints" / "index.json.tmp").exists()

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from popsan_jax.errors import CheckpointError
-from popsan_jax.training import checkpoint
+from popsan_jax.training import checkpoint, checkpoint_index
 
 
 @flax.struct.dataclass
@@ -33,7 +33,7 @@ def test_digest_recorded_and_damage_names_intact_steps(tmp_path):
     state = _S(w=jnp.ones(4), env_steps=jnp.int32(2))
     checkpoint.save_checkpoint(tmp_path, first, jax.random.PRNGKey(0), 1, 0.9, 1)
     path = checkpoint.save_checkpoint(tmp_path, state, jax.random.PRNGKey(1), 2, 0.1, 1)
-    index = checkpoint.read_index(tmp_path)
+    index = checkpoint_index.read_index(tmp_path)
     assert all(e["digest"].startswith("sha256:") for e in index["checkpoints"])
     checkpoint.restore_checkpoint(tmp_path, state, "last")
     f = _data_file(path)
@@ -53,7 +53,7 @@ def test_manifest_without_digest_loads_unverified(tmp_path):
     p.write_text(json.dumps(index))
     restored, _, entry = checkpoint.restore_checkpoint(tmp_path, state, "last")
     assert "digest" not in entry
-    assert checkpoint.verify_checkpoint(tmp_path, index, entry) is False
+    assert checkpoint_index.verify_checkpoint(tmp_path, index, entry) is False
 
 
 def test_non_finite_arrays_refused(tmp_path):
@@ -93,13 +93,13 @@ def test_index_off_its_schema_is_one_line(tmp_path, edit, match):
     index = json.loads(p.read_text())
     edit(index)
     p.write_text(json.dumps(index))
-    for read in (checkpoint.read_index, lambda r: checkpoint.restore_checkpoint(r, state)):
+    for read in (checkpoint_index.read_index, lambda r: checkpoint.restore_checkpoint(r, state)):
         with pytest.raises(CheckpointError, match=re.escape(match)) as err:
             read(tmp_path)
         assert "\n" not in str(err.value)
     p.write_bytes(bytes(range(128, 256)))  # not even UTF-8
     with pytest.raises(CheckpointError, match="corrupt checkpoint index"):
-        checkpoint.read_index(tmp_path)
+        checkpoint_index.read_index(tmp_path)
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="mounting a tmpfs needs root")
@@ -119,7 +119,7 @@ def test_disk_full_is_one_line_naming_the_last_good_checkpoint(tmp_path, monkeyp
         line = str(err.value)
         assert "\n" not in line and "No space left on device" in line, line
         assert "the last good checkpoint is step 1" in line, line
-        assert checkpoint.read_index(run)["last"] == 1
+        assert checkpoint_index.read_index(run)["last"] == 1
         left = sorted(p.name for p in (run / "checkpoints").iterdir())
         assert left == ["index.json", "step_000000000001"]  # no half-written checkpoint
         checkpoint.restore_checkpoint(run, small, "last")

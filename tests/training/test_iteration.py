@@ -12,7 +12,7 @@ from _toy_env import PointPick, tiny_config
 from brax.envs.wrappers import training as brax_training
 
 from popsan_jax.training import iteration
-from popsan_jax.training.loop import make_diagnostics_fn
+from popsan_jax.training.diagnostics import make_diagnostics_fn
 from popsan_jax.training.setup import build_networks, make_optimizer
 
 

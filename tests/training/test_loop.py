@@ -24,7 +24,7 @@ from tensorboardX.proto import event_pb2
 
 from popsan_jax.errors import NonFiniteError
 from popsan_jax.networks import actor_variables, make_actor
-from popsan_jax.training import checkpoint, iteration
+from popsan_jax.training import checkpoint, checkpoint_index, iteration
 from popsan_jax.training.loop import train
 from popsan_jax.training.run_log import read_metrics
 from popsan_jax.training.setup import build_networks, make_optimizer
@@ -84,7 +84,7 @@ def test_run_directory_contents(two_iteration_run):
         assert r["episode_length"] == PointPick().config.episode_length  # never terminates early
         assert {"reward/distance", "reward/action_cost", "episode_reward", "steps_per_s"} <= set(r)
     assert list((run_dir / "tb").glob("events.out.tfevents.*"))
-    index = checkpoint.read_index(run_dir)
+    index = checkpoint_index.read_index(run_dir)
     assert index["last"] == 2 * STEPS
     assert int(result.state.env_steps) == 2 * STEPS
     # 2 iterations x 2 epochs x 4 minibatches of Adam steps
@@ -138,7 +138,7 @@ def test_resume_restores_state_and_continues_step_count(two_iteration_run, tmp_p
     assert 123.0 not in [v for _, v in entropy]
     # the optimiser state continued: 4 iterations' worth of Adam steps, not 2
     assert _adam_counts(out.state.opt_state) == [32]
-    assert checkpoint.read_index(resumed_dir)["last"] == 4 * STEPS
+    assert checkpoint_index.read_index(resumed_dir)["last"] == 4 * STEPS
 
 
 def test_stagger_spreads_episode_phases():
@@ -207,7 +207,7 @@ def test_nan_stops_with_step_and_keeps_last_good_checkpoint(two_iteration_run, t
     more = config.replace(total_env_steps=4 * STEPS)
     with pytest.raises(NonFiniteError, match=f"at env step {3 * STEPS}"):
         train(more, nan_dir, resume=True, environment=NaNReward(), progress=False)
-    assert checkpoint.read_index(nan_dir)["last"] == 2 * STEPS
+    assert checkpoint_index.read_index(nan_dir)["last"] == 2 * STEPS
     loaded = checkpoint.load_run(nan_dir, environment=PointPick())
     assert _equal_trees(loaded.policy_params, result.state.params.policy)
 
@@ -261,7 +261,7 @@ def test_sigkill_mid_run_leaves_a_loadable_last_checkpoint(tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     loaded = checkpoint.load_run(run_dir, environment=PointPick())
-    last = checkpoint.read_index(run_dir)["last"]
+    last = checkpoint_index.read_index(run_dir)["last"]
     assert loaded.step == last >= 3 * STEPS
     out = train(
         tiny_config(total_env_steps=last + STEPS, num_evals=200),

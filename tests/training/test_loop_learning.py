@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from popsan_jax.training import checkpoint
+from popsan_jax.training import checkpoint_index
 from popsan_jax.training.run_log import read_metrics
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -64,4 +64,4 @@ def test_reach_success_far_above_untrained(actor, tmp_path):
     assert final["success_rate"] <= final["reached_rate"], evals  # a hold implies a reach
     # the mean fingertip-target distance over an episode at least halves
     assert final["reward/dist"] < 0.5 * untrained["reward/dist"], evals
-    assert checkpoint.read_index(run_dir)["last"] == final["env_steps"]
+    assert checkpoint_index.read_index(run_dir)["last"] == final["env_steps"]

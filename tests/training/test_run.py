@@ -12,7 +12,7 @@ import pytest
 from popsan_jax.cli import given_flags, run_choices, train_parser
 from popsan_jax.errors import UserError
 from popsan_jax.training import run
-from popsan_jax.training.checkpoint import checkpoint_dir, index_path
+from popsan_jax.training.checkpoint_index import checkpoint_dir, index_path
 from popsan_jax.training.loop import train
 
 

@@ -20,7 +20,7 @@ from _run_fixtures import ROOT, STEPS, copy_run, load_script, toy_env_everywhere
 from _toy_env import PointPick, tiny_config
 
 from popsan_jax.errors import CheckpointError, ConfigError, NonFiniteError, UserError
-from popsan_jax.training import checkpoint
+from popsan_jax.training import checkpoint, checkpoint_index
 from popsan_jax.training.loop import train
 from popsan_jax.training.run_log import read_metrics
 
@@ -115,7 +115,7 @@ def test_crafted_index_dir_deletes_and_loads_nothing_outside(tmp_path, crafted):
         checkpoint.restore_checkpoint(run, state, 50)
     checkpoint.save_checkpoint(run, state, jax.random.PRNGKey(0), 4, 0.0, 2)
     assert (victim / "precious.txt").read_text() == "keep me"
-    assert [e["step"] for e in checkpoint.read_index(run)["checkpoints"]] == [100, 300]
+    assert [e["step"] for e in checkpoint_index.read_index(run)["checkpoints"]] == [100, 300]
 
 
 # ---- one writer (item 4) -------------------------------------------------------------------
@@ -146,7 +146,7 @@ def test_second_trainer_is_refused_naming_the_holder(finished_toy_run, tmp_path)
     finally:
         holder.kill()
         holder.wait()
-    assert checkpoint.read_index(run)["last"] == 2 * STEPS  # nothing written
+    assert checkpoint_index.read_index(run)["last"] == 2 * STEPS  # nothing written
     assert (run / "metrics.jsonl").read_text() == before
     assert json.loads((run / "lock").read_text())["pid"] == holder.pid
 
@@ -208,7 +208,7 @@ def test_signal_during_checkpoint_write_finishes_it_and_exits_130(
     assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
     assert proc.stderr.count("interrupted") == 1, proc.stderr[-3000:]
     assert time.monotonic() - t0 < 200
-    index = checkpoint.read_index(run)
+    index = checkpoint_index.read_index(run)
     assert index["last"] == 3 * STEPS  # the write under way when the signal came is complete
     assert checkpoint.load_run(run, environment=PointPick()).step == 3 * STEPS
     assert not (run / "lock").exists()
@@ -251,7 +251,7 @@ def test_resuming_a_finished_run_says_so(finished_toy_run, tmp_path, monkeypatch
     err = capsys.readouterr().err
     assert f"already finished at {2 * STEPS} env steps" in err, err
     assert "nan" not in err
-    assert checkpoint.read_index(run)["last"] == 2 * STEPS
+    assert checkpoint_index.read_index(run)["last"] == 2 * STEPS
 
 
 def test_run_killed_before_its_first_checkpoint_restarts(
@@ -263,7 +263,7 @@ def test_run_killed_before_its_first_checkpoint_restarts(
     assert train_cli.main(["--resume", str(run), "--no-progress"]) == 0
     err = capsys.readouterr().err
     assert "no checkpoint yet; training it again from step 0" in err
-    assert checkpoint.read_index(run)["last"] == 2 * STEPS
+    assert checkpoint_index.read_index(run)["last"] == 2 * STEPS
     evals = [r["env_steps"] for r in read_metrics(run, "eval")]
     assert evals == [0, STEPS, 2 * STEPS]  # the killed attempt's records are gone
 

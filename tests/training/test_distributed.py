@@ -1,0 +1,163 @@
+"""Training over two processes with jax.distributed on localhost (issue 21), and how a process
+finds its place in a cluster (flags, SLURM, Open MPI, JAX's variables)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from popsan_jax.distributed import Cluster, resolve_cluster
+from popsan_jax.errors import UserError
+from popsan_jax.training import checkpoint_index
+
+ROOT = Path(__file__).resolve().parents[2]
+WORKER = Path(__file__).with_name("_dist_worker.py")
+# franka_reach, the smoke preset with tiny networks: 3 iterations, a checkpoint after each.
+TINY = [
+    "--env", "franka_reach", "--preset", "smoke", "--actor", "mlp", "--hidden-sizes", "16,16",
+    "--critic-hidden-sizes", "16,16", "--num-eval-envs", "4", "--no-progress",
+]  # fmt: skip
+
+
+# ---- where a process stands --------------------------------------------------------------
+def test_flags_win_and_go_together():
+    env = {"SLURM_NTASKS": "4"}
+    assert resolve_cluster("10.0.0.1:1234", 2, 1, None, env) == Cluster(
+        "flags", "10.0.0.1:1234", 2, 1
+    )
+    with pytest.raises(UserError, match="go together; missing --num-processes, --process-id"):
+        resolve_cluster("10.0.0.1:1234", None, None, None, {})
+    with pytest.raises(UserError, match=r"--process-id must be in 0..1 \(--num-processes 2\)"):
+        resolve_cluster("h:1", 2, 2, None, {})
+    with pytest.raises(UserError, match="HOST:PORT"):
+        resolve_cluster("nohost", 2, 0, None, {})
+    with pytest.raises(UserError, match="--heartbeat-timeout must be >= 1"):
+        resolve_cluster(None, None, None, 0, {})
+
+
+def test_cluster_from_the_environment():
+    assert resolve_cluster(environ={}) is None
+    assert resolve_cluster(environ={"SLURM_NTASKS": "1", "OMPI_COMM_WORLD_SIZE": "1"}) is None
+    assert resolve_cluster(environ={"SLURM_NTASKS": "8"}) == Cluster("SLURM")
+    assert resolve_cluster(environ={"OMPI_COMM_WORLD_SIZE": "2"}).source == "Open MPI"
+    jax_vars = {"JAX_COORDINATOR_ADDRESS": "h:99", "JAX_NUM_PROCESSES": "3", "JAX_PROCESS_ID": "2"}
+    assert resolve_cluster(heartbeat_timeout=7, environ=jax_vars) == Cluster(
+        "JAX_COORDINATOR_ADDRESS", "h:99", 3, 2, 7
+    )
+    # the address alone: JAX's own detection supplies the rest
+    assert resolve_cluster(environ={"JAX_COORDINATOR_ADDRESS": "h:99"}).num_processes is None
+    with pytest.raises(UserError, match="SLURM_NTASKS='x' in the environment is not an integer"):
+        resolve_cluster(environ={"SLURM_NTASKS": "x"})
+
+
+# ---- two processes on localhost ----------------------------------------------------------
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _env(devices: int = 1) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("SLURM_", "OMPI_", "JAX_"))}
+    env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
+    return env
+
+
+def _launch(command: list[str], port: int, log: Path, extra: list[str]) -> list[subprocess.Popen]:
+    cluster = ["--coordinator", f"127.0.0.1:{port}", "--num-processes", "2"]
+    return [
+        subprocess.Popen(
+            [sys.executable, *command, *extra, *cluster, "--process-id", str(i)],
+            cwd=ROOT,
+            env=_env(),
+            stdout=subprocess.DEVNULL,
+            stderr=open(log.with_suffix(f".p{i}.log"), "w"),
+        )
+        for i in range(2)
+    ]
+
+
+def _wait(procs: list[subprocess.Popen], timeout: float) -> list[int]:
+    deadline = time.monotonic() + timeout
+    codes = []
+    for p in procs:
+        try:
+            codes.append(p.wait(timeout=max(1.0, deadline - time.monotonic())))
+        except subprocess.TimeoutExpired:
+            for q in procs:
+                q.kill()
+            pytest.fail(f"a process was still running after {timeout} s")
+    return codes
+
+
+def _states(out: Path, names: list[str]) -> list[list[np.ndarray]]:
+    loaded = [np.load(out / f"state_{n}.npz") for n in names]
+    return [[f[k] for k in sorted(f.files, key=lambda k: int(k.split("_")[1]))] for f in loaded]
+
+
+@pytest.mark.slow
+def test_two_processes_kill_resume_and_match_one_process(tmp_path):
+    runs = tmp_path / "runs"
+    run_dir, ref_dir = runs / "run", runs / "ref"
+    # 1. a fresh 2-process run; process 1 is killed once the first checkpoint is listed
+    procs = _launch(
+        ["train.py"],
+        _free_port(),
+        tmp_path / "a",
+        [*TINY, "--runs-dir", str(runs), "--name", "run"],
+    )
+    deadline = time.monotonic() + 400
+    while not checkpoint_index.has_checkpoint(run_dir):
+        assert procs[0].poll() is None and procs[1].poll() is None, "a process ended early"
+        assert time.monotonic() < deadline, "no checkpoint after 400 s"
+        time.sleep(0.2)
+    procs[1].send_signal(signal.SIGKILL)
+    t0 = time.monotonic()
+    code = _wait(procs[:1], timeout=120)[0]
+    err = (tmp_path / "a.p0.log").read_text()
+    assert code == 3, err[-3000:]
+    assert "error: process 0 of 2: another process stopped or became unreachable" in err
+    assert f"the last checkpoint in {run_dir} is kept" in err
+    print(f"process 0 stopped {time.monotonic() - t0:.1f} s after the kill")
+    assert not (run_dir / "lock").exists()
+    index = checkpoint_index.read_index(run_dir)
+    assert all(checkpoint_index.verify_checkpoint(run_dir, index, e) for e in index["checkpoints"])
+    shutil.copytree(run_dir, ref_dir)
+
+    # 2. the 2-process resume to the end, and 1 process x 2 devices from the same checkpoint
+    out = tmp_path / "out"
+    out.mkdir()
+    worker = [str(WORKER), str(out)]
+    resume = ["--no-progress", "--resume"]
+    procs = _launch(worker, _free_port(), tmp_path / "b", [*resume, str(run_dir)])
+    assert _wait(procs, timeout=400) == [0, 0], (tmp_path / "b.p0.log").read_text()[-3000:]
+    (out / "state_p0.npz").rename(out / "state_two0.npz")
+    (out / "state_p1.npz").rename(out / "state_two1.npz")
+    one = subprocess.run(
+        [sys.executable, *worker, *resume, str(ref_dir)],
+        cwd=ROOT,
+        env=_env(devices=2),
+        capture_output=True,
+        text=True,
+        timeout=400,
+    )
+    assert one.returncode == 0, one.stderr[-3000:]
+    (out / "state_p0.npz").rename(out / "state_one.npz")
+
+    # Bit-equal: every device runs the same HLO on the same env rows and keys in both layouts,
+    # and the only cross-device reductions are 2-term psums, whose sum does not depend on order.
+    two0, two1, ref = _states(out, ["two0", "two1", "one"])
+    assert len(two0) == len(ref) > 10
+    for a, b, c in zip(two0, two1, ref, strict=True):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, c)
+    assert int(checkpoint_index.read_index(run_dir)["last"]) == 3 * 1280
