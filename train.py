@@ -22,7 +22,6 @@ from __future__ import annotations
 import os
 import sys
 from pathlib import Path
-from typing import Any
 
 from popsan_jax.cli import cluster_flags, given_flags, run_choices, stop_on_signals, train_parser
 from popsan_jax.errors import UserError
@@ -64,29 +63,9 @@ def main(argv: list[str] | None = None) -> int:
             if cluster is None or not distributed.peer_failure(e):
                 raise
             return _stop(cluster, 3, f"error: {distributed.peer_lost_message(run_dir)}")
-    print(done_message(result, run_dir, jax.process_index(), jax.process_count()), file=sys.stderr)
+    line = run.done_message(result, run_dir, jax.process_index(), jax.process_count())
+    print(line, file=sys.stderr)
     return 0
-
-
-def done_message(result: Any, run_dir: Path | None, process: int, processes: int) -> str:
-    """The last line of a run. Under jax.distributed only process 0 evaluates and writes the
-    run, so the others say which process they were and point there."""
-    steps = int(result.state.env_steps)
-    if process != 0:
-        return (
-            f"done: process {process} of {processes} ({steps} env steps); process 0 holds the "
-            f"results -> {run_dir}"
-        )
-    if result.finished:  # resumed a run that had already reached its total
-        return (
-            f"done: {run_dir} already finished at {steps} env steps; to train further: "
-            f"python train.py --resume {run_dir} --total-env-steps N (N > {steps})"
-        )
-    final = result.last_eval or {}
-    return (
-        f"done: {steps} env steps, success rate "
-        f"{final.get('success_rate', float('nan')):.3f} -> {run_dir}"
-    )
 
 
 def _stop(cluster: object, code: int, message: str) -> int:

@@ -4,7 +4,6 @@ themselves run as a user runs them: bad input is one ``error:`` line and exit st
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import os
 import re
 import signal
@@ -18,6 +17,7 @@ import pytest
 
 from popsan_jax import cli
 from popsan_jax.config import RunConfig
+from popsan_jax.training import run
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -122,24 +122,21 @@ def test_entry_points_exit_2_with_one_error_line(argv, match, tmp_path):
 
 def test_done_line_of_each_process():
     """Only process 0 evaluates: the others name themselves and point there, not at NaN."""
-    spec = importlib.util.spec_from_file_location("train_cli", ROOT / "train.py")
-    train_py = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(train_py)
     state = SimpleNamespace(env_steps=1280)
     main = SimpleNamespace(state=state, finished=False, last_eval={"success_rate": 0.25})
     other = SimpleNamespace(state=state, finished=False, last_eval=None)
-    run = Path("runs/r")
+    run_dir = Path("runs/r")
     assert (
-        train_py.done_message(main, run, 0, 2)
+        run.done_message(main, run_dir, 0, 2)
         == "done: 1280 env steps, success rate 0.250 -> runs/r"
     )
     for result in (other, SimpleNamespace(state=state, finished=True, last_eval=None)):
-        line = train_py.done_message(result, run, 1, 2)
+        line = run.done_message(result, run_dir, 1, 2)
         assert (
             line == "done: process 1 of 2 (1280 env steps); process 0 holds the results -> runs/r"
         )
-    assert "already finished at 1280" in train_py.done_message(
-        SimpleNamespace(state=state, finished=True, last_eval=None), run, 0, 1
+    assert "already finished at 1280" in run.done_message(
+        SimpleNamespace(state=state, finished=True, last_eval=None), run_dir, 0, 1
     )
 
 

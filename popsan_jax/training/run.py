@@ -87,6 +87,27 @@ def interrupted_message(run_dir: Path | None) -> str:
     )
 
 
+def done_message(result: Any, run_dir: Path | None, process: int, processes: int) -> str:
+    """The last line of a run. Under jax.distributed only process 0 evaluates and writes the
+    run, so the others say which process they were and point there."""
+    steps = int(result.state.env_steps)
+    if process != 0:
+        return (
+            f"done: process {process} of {processes} ({steps} env steps); process 0 holds the "
+            f"results -> {run_dir}"
+        )
+    if result.finished:  # resumed a run that had already reached its total
+        return (
+            f"done: {run_dir} already finished at {steps} env steps; to train further: "
+            f"python train.py --resume {run_dir} --total-env-steps N (N > {steps})"
+        )
+    final = result.last_eval or {}
+    return (
+        f"done: {steps} env steps, success rate "
+        f"{final.get('success_rate', float('nan')):.3f} -> {run_dir}"
+    )
+
+
 def prepare_run(
     backend: str,
     given: dict[str, Any],
