@@ -26,14 +26,15 @@ Reward (PixMC's terms; ``state.metrics`` carries each UNSCALED term; scales in
     lift            = 0.5 if obj_z - z_rest > 0.015 and held       scale 4.0
     object_goal     = 1 / (0.04 + |goal_z - obj_z|) if lifted+held scale 1.28
     goal_bonus      = 0.5 if |goal_z - obj_z| <= 0.04 and held     scale 4.0
-    object_speed    = |v_obj| (m/s) if lifted+held                 scale -4.0
+    object_speed    = |v_obj| (m/s) if held and in the goal band    scale -6.0
     action          = sum(a^2) of the clipped action               scale -0.01
 
 ``held`` (0/1, no scale): both fingertip pads within ``grasp_radius`` (0.04 m) of the cube centre.
 The object terms pay only while the cube is held, so no term pays for a thrown or dropped cube.
-``object_speed`` (not PixMC's) charges a lifted cube's motion: the goal is a height, and with a
-grasp that squeezes nothing else stops a policy from swinging the held cube through the goal
-band (``docs/design.md``, "Holding still").
+``object_speed`` (not PixMC's) charges the held cube's motion inside the goal band: the goal is a
+height, and with a grasp that squeezes nothing else stops a policy from swinging the held cube
+through the band. It is not charged on the way up, where it would cost the same for every metre
+climbed, whatever the speed, and stall the lift (``docs/design.md``, "Holding still").
 ``in band``: ``|goal_z - obj_z| <= 0.25 (goal_z - z_rest)`` (PixMC's success tolerance).
 
 Episode metrics (``state.metrics``; their value at an episode's last step is the episode's):
@@ -121,7 +122,7 @@ def default_config() -> ml_collections.ConfigDict:
             lift=4.0,
             object_goal=1.28,
             goal_bonus=4.0,
-            object_speed=-4.0,
+            object_speed=-6.0,
             action=-0.01,
         ),
     )
@@ -155,11 +156,18 @@ def pick_reward_terms(
             lift=jnp.where(lifted, 0.5, 0.0),
             object_goal=jnp.where(lifted, 1.0 / (0.04 + og_d), 0.0),
             goal_bonus=jnp.where(held & (og_d <= 0.04), 0.5, 0.0),
-            object_speed=jnp.where(lifted, jnp.linalg.norm(speed_of(obj_vel)), 0.0),
+            object_speed=jnp.where(
+                held & (og_d <= goal_band(goal_z, z_rest)), jnp.linalg.norm(speed_of(obj_vel)), 0.0
+            ),
             action=jnp.sum(jnp.square(action)),
             held=held.astype(jnp.float32),
         )
     )
+
+
+def goal_band(goal_z: float, z_rest: float = Z_REST) -> float:
+    """Half-width of the goal band (m): PixMC's success tolerance, a quarter of the lift."""
+    return 0.25 * (goal_z - z_rest)
 
 
 def speed_of(velocity: jax.Array | None) -> jax.Array:
@@ -192,7 +200,7 @@ class FrankaPick(PandaEnv):
         self._obj_body = m.body("box").id
         self.z_rest = Z_REST
         self.goal_z = Z_REST + float(self.config.lift_height)
-        self._goal_tol = 0.25 * (self.goal_z - Z_REST)
+        self._goal_tol = goal_band(self.goal_z, Z_REST)
         self._grasp_radius = float(self.config.grasp_radius)
         self._hold_steps = int(round(self.config.hold_seconds / self.config.ctrl_dt))
         m.site_pos[m.site("goal").id, 2] = self.goal_z  # only drawn, never simulated

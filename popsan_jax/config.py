@@ -26,7 +26,7 @@ from popsan_jax.schema import check_config
 
 ACTORS = ("popsan", "mlp")
 # franka_pick/franka_reach revision 2: the grasp that holds; 3: finger targets past the closed
-# stop; 4: franka_pick charges a lifted cube's speed (envs/franka_pick.py)
+# stop; 4: franka_pick charges the held cube's speed in the goal band (envs/franka_pick.py)
 CURRENT_ENV_REVISION = 4
 LR_SCHEDULES = ("constant", "cosine")
 

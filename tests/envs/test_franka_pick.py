@@ -99,7 +99,11 @@ def test_reward_terms_hand_computed():
     assert float(t["lift"]) == 0.5 and float(t["goal_bonus"]) == 0.5
     assert float(t["object_goal"]) == pytest.approx(1 / 0.07, rel=1e-4)
     assert float(t["object_speed"]) == pytest.approx(0.5, rel=1e-5)  # |(0.3, 0, -0.4)| m/s
-    assert float(terms(0.02, 0.0)["object_speed"]) == 0.0  # on the floor: not lifted
+    # Charged only inside the goal band (0.42 +- 0.1 m): not on the floor, not on the way up.
+    assert float(terms(0.02, 0.0)["object_speed"]) == 0.0
+    assert float(terms(0.31, 0.0)["object_speed"]) == 0.0
+    assert float(terms(0.33, 0.0)["object_speed"]) == pytest.approx(0.5, rel=1e-5)
+    assert float(terms(0.53, 0.0)["object_speed"]) == 0.0
     # Barely above the 1.5 cm lift threshold vs barely below it.
     assert float(terms(0.036, 0.0)["lift"]) == 0.5 and float(terms(0.034, 0.0)["lift"]) == 0.0
 

@@ -51,17 +51,20 @@ def test_scripted_episodes_succeed_by_pick_and_hold(long_hold):
 
 
 @pytest.mark.slow
-def test_object_speed_charges_the_lifted_cube_s_motion(long_hold):
-    # The reward term object_speed is the held, lifted cube's speed: 0 while it rests on the
-    # floor; during the lift at least its vertical speed (from the height trace); ~0 once it is
-    # held still at the goal.
+def test_object_speed_charges_the_held_cube_s_motion_in_the_band(long_hold):
+    # The reward term object_speed is the held cube's speed inside the goal band: 0 while it
+    # rests on the floor and on the way up; as the cube enters the band at the end of the lift
+    # at least its vertical speed there (from the height trace); ~0 once it is held still.
     env, trace = long_hold
     speed, z = trace["object_speed"], trace["object_z"]
-    np.testing.assert_array_equal(speed[:30], 0.0)  # approaching: on the floor, not lifted
-    lift = slice(CLOSE_END, CLOSE_END + int(round(1.0 / env.dt)))
-    vz = np.abs(np.diff(z, axis=0))[lift] / env.dt  # mean vertical speed over each step
-    assert vz.mean() > 0.1  # the cube does rise in that second
-    assert speed[lift].mean() >= 0.8 * vz.mean()
-    assert speed[lift].max() < 5.0  # m/s: a physical speed, not a blow-up
+    in_band = np.abs(env.goal_z - z) <= env.goal_tolerance
+    np.testing.assert_array_equal(speed[~in_band], 0.0)
+    entering = np.argmax(in_band, axis=0)  # first step in the band, per episode
+    assert np.all(in_band.any(axis=0))
+    cols = np.arange(z.shape[1])
+    vz = (z[entering, cols] - z[entering - 1, cols]) / env.dt  # mean rise over that step
+    assert np.median(vz) > 0.05  # the cube is still rising when it enters the band
+    assert np.median(speed[entering, cols]) >= 0.5 * np.median(vz)
+    assert speed.max() < 5.0  # m/s: a physical speed, not a blow-up
     settled = speed[CLOSE_END + int(round(4 / env.dt)) :]
     assert np.median(settled) < 0.02
