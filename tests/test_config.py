@@ -97,10 +97,16 @@ def test_paper_preset_is_the_committed_pick_run_that_learned():
 
 def test_readme_command_is_the_committed_pick_hold_run():
     # `python train.py --env franka_pick` on a CPU (docs/results.md, "Pick-and-hold") must be
-    # the committed revision-2 run; `--seed K` and `--actor mlp` change only those fields.
-    committed = RunConfig.from_json(ROOT / "docs/reference/pick-hold-popsan-s0/config.json")
+    # the committed run on the current env revision; the revision-2 run of the same command
+    # differs in its revision only. `--seed K` and `--actor mlp` change only those fields.
+    committed = RunConfig.from_json(ROOT / "docs/results/pick_hold4/popsan-s0/config.json")
     assert resolve_config(None, "cpu", dict(env="franka_pick")) == committed
     assert committed.env_revision == CURRENT_ENV_REVISION
+    revision_2 = RunConfig.from_json(ROOT / "docs/reference/pick-hold-popsan-s0/config.json")
+    assert revision_2.env_revision == 2
+    assert revision_2.replace(env_revision=CURRENT_ENV_REVISION) == committed
+    mlp = resolve_config(None, "cpu", dict(env="franka_pick", actor="mlp", seed=2))
+    assert mlp.replace(actor="popsan", seed=0, actor_kwargs=committed.actor_kwargs) == committed
 
 
 def test_documented_t2_fine_tune_is_the_committed_run():
