@@ -135,11 +135,11 @@ def pick_reward_terms(
     goal_z: float,
     action: jax.Array,
     grasp_radius: float,
-    obj_vel: jax.Array | None = None,
+    obj_vel: jax.Array,
     z_rest: float = Z_REST,
 ) -> dict[str, jax.Array]:
     """Unscaled reward terms for one env: ``obj``/tips ``[3]``, ``action`` ``[9]``, the cube's
-    linear velocity ``obj_vel`` ``[3]`` (m/s; None: at rest).
+    linear velocity ``obj_vel`` ``[3]`` (m/s).
 
     The object terms (lift, object_goal, goal_bonus) count only while ``is_held``; ``held``
     itself (0/1) is returned too, for the success counter and the metrics (it has no scale).
@@ -157,7 +157,7 @@ def pick_reward_terms(
             object_goal=jnp.where(lifted, 1.0 / (0.04 + og_d), 0.0),
             goal_bonus=jnp.where(held & (og_d <= 0.04), 0.5, 0.0),
             object_speed=jnp.where(
-                held & (og_d <= goal_band(goal_z, z_rest)), jnp.linalg.norm(speed_of(obj_vel)), 0.0
+                held & (og_d <= goal_band(goal_z, z_rest)), jnp.linalg.norm(obj_vel), 0.0
             ),
             action=jnp.sum(jnp.square(action)),
             held=held.astype(jnp.float32),
@@ -168,11 +168,6 @@ def pick_reward_terms(
 def goal_band(goal_z: float, z_rest: float = Z_REST) -> float:
     """Half-width of the goal band (m): PixMC's success tolerance, a quarter of the lift."""
     return 0.25 * (goal_z - z_rest)
-
-
-def speed_of(velocity: jax.Array | None) -> jax.Array:
-    """``velocity`` ``[3]``, zeros for None (a cube at rest)."""
-    return jnp.zeros(3) if velocity is None else velocity
 
 
 def is_held(d_left: jax.Array, d_right: jax.Array, grasp_radius: float) -> jax.Array:

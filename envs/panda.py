@@ -187,8 +187,8 @@ class PandaEnv(Env):
         self._tune_model(self._mj_model)
         # This process's own device: MJX defaults to jax.devices()[0], which under jax.distributed
         # belongs to process 0.
-        self._device = jax.local_devices()[0]
-        self._mjx_model = mjx.put_model(self._mj_model, device=self._device)
+        device = jax.local_devices()[0]
+        self._mjx_model = mjx.put_model(self._mj_model, device=device)
         self._n_substeps = int(round(config.ctrl_dt / config.sim_dt))
         m = self._mj_model
         jnt = [m.joint(name) for name in JOINTS]
@@ -202,7 +202,7 @@ class PandaEnv(Env):
         self._step_scale = (SPEED_SCALE * config.ctrl_dt * config.action_scale).astype(np.float32)
         self._left_tip = m.site("left_tip").id
         self._right_tip = m.site("right_tip").id
-        self._template = mjx.make_data(self._mjx_model, device=self._device)
+        self._template = mjx.make_data(self._mjx_model, device=device)
 
     # ----- Brax Env interface -------------------------------------------------------------
     @property
