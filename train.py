@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
 
             from popsan_jax import distributed
             from popsan_jax.training import run
-            from popsan_jax.training.loop import train
+            from popsan_jax.training.stages import train_run
 
             cluster = distributed.resolve_cluster(**cluster_flags(args))
             if cluster is not None:  # before anything creates a JAX backend
@@ -51,7 +51,9 @@ def main(argv: list[str] | None = None) -> int:
             config, run_dir = run.prepare_run_everywhere(
                 jax.default_backend(), *given_flags(args), **run_choices(args)
             )
-            result = train(config, run_dir, resume=bool(args.resume), progress=not args.no_progress)
+            result = train_run(
+                config, run_dir, resume=bool(args.resume), progress=not args.no_progress
+            )
         except UserError as e:
             return _stop(cluster, 2, f"error: {e}")
         except KeyboardInterrupt:

@@ -29,8 +29,8 @@ def worker(args: argparse.Namespace) -> None:
     import jax
 
     from popsan_jax import distributed
-    from popsan_jax.config import resolve_config
     from popsan_jax.jax_setup import enable_compilation_cache
+    from popsan_jax.recipes import resolve_config
     from popsan_jax.training.iteration import init_training_state
     from popsan_jax.training.loop import build_trainer
 

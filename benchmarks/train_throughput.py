@@ -29,8 +29,8 @@ import jax
 import jax.numpy as jnp
 from actor_throughput import popsan_dense_flops
 
-from popsan_jax.config import resolve_config
 from popsan_jax.jax_setup import enable_compilation_cache
+from popsan_jax.recipes import resolve_config
 from popsan_jax.training.iteration import init_training_state
 from popsan_jax.training.loop import build_trainer
 

@@ -19,7 +19,8 @@ import typing
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from popsan_jax.config import FLAG_HELP, POPSAN_DEFAULTS, PRESETS, RunConfig
+from popsan_jax.config import FLAG_HELP, POPSAN_DEFAULTS, RunConfig
+from popsan_jax.recipes import PRESETS
 
 ACTOR_FLAG_HELP = {
     "hidden_sizes": "actor hidden sizes, e.g. 256,256",

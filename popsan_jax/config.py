@@ -1,8 +1,9 @@
-"""The run configuration: one frozen dataclass, presets, derived sizes and up-front checks.
+"""The run configuration: one frozen dataclass, derived sizes and up-front checks.
 
 A :class:`RunConfig` fully describes a training run; it is saved as ``config.json`` in the run
 directory and is all that :func:`popsan_jax.training.checkpoint.load_run` needs to rebuild the
-env and the networks. No CLI parsing here (train.py maps flags onto :func:`resolve_config`).
+env and the networks. No CLI parsing here; the presets and default recipes that train.py's
+flags override are in :mod:`popsan_jax.recipes`.
 
 Batch vocabulary (Brax's): each training iteration collects ``batch_size * num_minibatches``
 sequences of ``unroll_length`` steps from ``num_envs`` parallel envs, i.e.
@@ -101,6 +102,13 @@ class RunConfig:
     init_checkpoint: str = _flag(
         "best", "which checkpoint of --init-from: best | last | env-step count"
     )
+    # Warm-up stage (popsan_jax/training/stages.py): first warmup_env_steps on the env with
+    # warmup_env_overrides (a gentler variant of the task) at warmup_actor_lr, in RUN/warmup/;
+    # then this config's own stage starts from its last checkpoint (fresh optimiser).
+    warmup_env_steps: int = _flag(0, "env steps of a warm-up stage before the run's own (0: none)")
+    warmup_env_overrides: dict[str, Any] = dataclasses.field(default_factory=dict)
+    warmup_actor_lr: float = _flag(1e-3, "actor learning rate of the warm-up stage")
+    warmup_num_evals: int = _flag(24, "evaluations (and checkpoints) of the warm-up stage")
     # Evaluation, checkpoints, logging.
     num_evals: int = _flag(10, "evaluations (and checkpoints) over the run")
     num_eval_envs: int = _flag(64, "episodes per evaluation")
@@ -153,6 +161,10 @@ class RunConfig:
         for name, value in positive.items():
             if value < 1:
                 raise ConfigError(f"{name} must be >= 1, got {value}")
+        if self.warmup_env_steps < 0:
+            raise ConfigError(f"warmup_env_steps must be >= 0, got {self.warmup_env_steps}")
+        if self.warmup_env_steps and (self.warmup_num_evals < 1 or not self.warmup_actor_lr > 0):
+            raise ConfigError("a warm-up needs warmup_num_evals >= 1 and warmup_actor_lr > 0")
         if self.episode_length is not None and self.episode_length < 1:
             raise ConfigError(f"episode_length must be >= 1, got {self.episode_length}")
         for name in ("actor_lr", "critic_lr", "obs_clip"):
@@ -206,7 +218,7 @@ class RunConfig:
         if "critic_hidden_sizes" in data:
             data["critic_hidden_sizes"] = tuple(data["critic_hidden_sizes"])
         if "actor_kwargs" in data:
-            data["actor_kwargs"] = _tuplify(data["actor_kwargs"])
+            data["actor_kwargs"] = tuplify(data["actor_kwargs"])
         return cls(**data)
 
     @classmethod
@@ -225,121 +237,6 @@ class RunConfig:
         return dataclasses.replace(self, **changes)
 
 
-def _tuplify(kwargs: dict[str, Any]) -> dict[str, Any]:
+def tuplify(kwargs: dict[str, Any]) -> dict[str, Any]:
     # JSON turns tuples into lists; flax module fields want hashable tuples.
     return {k: tuple(v) if isinstance(v, list) else v for k, v in kwargs.items()}
-
-
-# Presets: partial configs applied over the backend defaults; explicit flags override both.
-PRESETS: dict[str, dict[str, Any]] = {
-    # A complete tiny run (train, eval, checkpoint) in about a minute on a 2-core CPU.
-    "smoke": dict(
-        num_envs=32,
-        batch_size=32,
-        num_minibatches=4,
-        unroll_length=10,
-        num_updates_per_batch=2,
-        total_env_steps=3 * 1280,
-        num_evals=2,
-        num_eval_envs=16,
-        keep_every_n_evals=1,
-        critic_hidden_sizes=(64, 64),
-    ),
-    # The headline run on franka_pick: the settings of the committed reference pick runs
-    # (docs/reference/, tests check the match; docs/design.md, "The paper preset"). The
-    # paper's lrs (1e-5 / 1e-4) were tuned for PixMC's 8 k-step batches.
-    "paper": dict(
-        env="franka_pick",
-        actor="popsan",
-        num_envs=512,
-        batch_size=256,
-        num_minibatches=8,
-        unroll_length=10,
-        num_updates_per_batch=4,
-        total_env_steps=40_000_000,
-        actor_lr=3e-4,
-        critic_lr=1e-3,
-        lr_schedule="constant",
-        discounting=0.97,
-        gae_lambda=0.95,
-        clipping_epsilon=0.2,
-        entropy_cost=1e-3,
-        num_evals=160,
-        num_eval_envs=64,
-        keep_every_n_evals=5,
-    ),
-}
-
-# The default recipe (docs/results.md, "Pick-and-hold"): what `python train.py --env
-# franka_pick` runs on a CPU, for both actors. Small minibatches (16 of 128 sequences) give
-# twice the gradient steps per sample of 8 of 256 at the same FLOPs; the actor lr 1e-3 decays to
-# 0 over the run (cosine), so the final checkpoint is the settled one. Evaluations use 256
-# episodes, so a 90 % figure has a 95 % CI of about +-4 points.
-CPU_RECIPE: dict[str, Any] = dict(
-    num_envs=512,
-    batch_size=128,
-    num_minibatches=16,
-    unroll_length=10,
-    num_updates_per_batch=4,
-    actor_lr=1e-3,
-    critic_lr=1e-3,
-    lr_schedule="cosine",
-    entropy_cost=1e-3,
-    total_env_steps=6_000_000,
-    num_evals=24,
-    num_eval_envs=256,
-)
-# The rule that scales the recipe to an accelerator's thousands of envs.
-ACCELERATOR_SCALE = 4
-
-
-def scale_recipe(recipe: dict[str, Any], factor: int) -> dict[str, Any]:
-    """The recipe with ``factor`` times the envs, minibatch size and env steps.
-
-    Minibatch count, epochs, unroll length, learning rates and schedule stay, so the run makes
-    the same number of gradient updates in the same order, each on ``factor`` times the
-    sequences (a less noisy gradient; the lr is not scaled). Evaluations keep their cadence.
-    """
-    scaled = dict(recipe)
-    for key in ("num_envs", "batch_size", "total_env_steps"):
-        scaled[key] = recipe[key] * factor
-    return scaled
-
-
-# Per-backend defaults: the CPU recipe on a CPU; accelerators run it scaled to 2048 envs.
-BACKEND_DEFAULTS: dict[str, dict[str, Any]] = {
-    "cpu": dict(CPU_RECIPE),
-    "gpu": scale_recipe(CPU_RECIPE, ACCELERATOR_SCALE),
-}
-BACKEND_DEFAULTS["tpu"] = BACKEND_DEFAULTS["gpu"]
-
-
-def resolve_config(
-    preset: str | None = None,
-    backend: str = "cpu",
-    overrides: dict[str, Any] | None = None,
-    actor_overrides: dict[str, Any] | None = None,
-) -> RunConfig:
-    """Backend defaults < preset < explicit overrides; actor kwargs default by actor name.
-
-    ``actor_overrides`` (e.g. ``timesteps``) update the chosen actor's default kwargs; a key
-    the actor does not take raises ConfigError.
-    """
-    if preset is not None and preset not in PRESETS:
-        raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    values: dict[str, Any] = dict(BACKEND_DEFAULTS.get(backend, BACKEND_DEFAULTS["cpu"]))
-    values.update(PRESETS.get(preset or "", {}))
-    values.update({k: v for k, v in (overrides or {}).items() if v is not None})
-    actor = values.get("actor", RunConfig.actor)
-    if actor not in ACTORS:
-        raise ConfigError(f"unknown actor {actor!r}; choose one of {', '.join(ACTORS)}")
-    if "actor_kwargs" not in values:
-        values["actor_kwargs"] = dict(POPSAN_DEFAULTS if actor == "popsan" else MLP_DEFAULTS)
-    extra = {k: v for k, v in (actor_overrides or {}).items() if v is not None}
-    bad = sorted(set(extra) - set(values["actor_kwargs"]))
-    if bad:
-        raise ConfigError(f"actor {actor!r} does not take {', '.join(bad)}")
-    values["actor_kwargs"] = _tuplify({**values["actor_kwargs"], **extra})
-    if "critic_hidden_sizes" in values:
-        values["critic_hidden_sizes"] = tuple(values["critic_hidden_sizes"])
-    return RunConfig.from_dict(values)

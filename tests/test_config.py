@@ -11,15 +11,11 @@ from pathlib import Path
 import pytest
 
 import envs
-from popsan_jax.config import (
-    CURRENT_ENV_REVISION,
-    POPSAN_DEFAULTS,
-    PRESETS,
-    RunConfig,
-    resolve_config,
-)
+from popsan_jax.config import CURRENT_ENV_REVISION, POPSAN_DEFAULTS, RunConfig
 from popsan_jax.errors import ConfigError
+from popsan_jax.recipes import PICK_RECIPE, PRESETS, resolve_config
 from popsan_jax.training.setup import make_env
+from popsan_jax.training.stages import warmup_config
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -95,18 +91,38 @@ def test_paper_preset_is_the_committed_pick_run_that_learned():
         assert paper == current, backend
 
 
-def test_readme_command_is_the_committed_pick_hold_run():
+def test_readme_command_is_the_committed_pick_hold_chain():
     # `python train.py --env franka_pick` on a CPU (docs/results.md, "Pick-and-hold") must be
-    # the committed run on the current env revision; the revision-2 run of the same command
-    # differs in its revision only. `--seed K` and `--actor mlp` change only those fields.
-    committed = RunConfig.from_json(ROOT / "docs/results/pick_hold4/popsan-s0/config.json")
-    assert resolve_config(None, "cpu", dict(env="franka_pick")) == committed
-    assert committed.env_revision == CURRENT_ENV_REVISION
+    # the committed seed-0 chain: its warm-up is the revision-2 run of the README's earlier
+    # command (docs/reference/pick-hold-popsan-s0; revision 2 spelt out as overrides), its own
+    # stage the 2 M-step fine-tune from that run's last checkpoint
+    # (docs/reference/pick-hold-popsan-ft-s0), the warm-up taking the place of init_from.
+    # `--seed K` and `--actor mlp` change only those fields.
+    command = resolve_config(None, "cpu", dict(env="franka_pick"))
+    fine_tune = RunConfig.from_json(ROOT / "docs/reference/pick-hold-popsan-ft-s0/config.json")
+    assert fine_tune.init_from == "docs/reference/pick-hold-popsan-s0"
+    assert fine_tune.init_checkpoint == "last"  # what the warm-up hands on (warm_source)
+    warm = dict((k, PICK_RECIPE[k]) for k in PICK_RECIPE if k.startswith("warmup_"))
+    assert command == fine_tune.replace(init_from=None, init_checkpoint="best", **warm)
+    assert command.env_revision == CURRENT_ENV_REVISION
     revision_2 = RunConfig.from_json(ROOT / "docs/reference/pick-hold-popsan-s0/config.json")
     assert revision_2.env_revision == 2
-    assert revision_2.replace(env_revision=CURRENT_ENV_REVISION) == committed
+    as_revision_2 = warmup_config(command).replace(env_overrides={}, env_revision=2)
+    assert as_revision_2 == revision_2
     mlp = resolve_config(None, "cpu", dict(env="franka_pick", actor="mlp", seed=2))
-    assert mlp.replace(actor="popsan", seed=0, actor_kwargs=committed.actor_kwargs) == committed
+    assert mlp.replace(actor="popsan", seed=0, actor_kwargs=command.actor_kwargs) == command
+
+
+def test_pick_warm_up_is_the_revision_2_task():
+    # The warm-up's overrides mean exactly what env revision 2 meant (clamped finger targets,
+    # no charge on the held cube's speed), as the env itself defines its old revisions.
+    assert PICK_RECIPE["warmup_env_overrides"] == envs.legacy_overrides("franka_pick", 2)
+    cpu, gpu = resolve_config(None, "cpu"), resolve_config(None, "gpu")
+    assert cpu.warmup_env_steps == 6_000_000 and cpu.total_env_steps == 2_000_000
+    assert gpu.warmup_env_steps == 4 * cpu.warmup_env_steps
+    # Another env and the presets (whole recipes of their own) have no warm-up.
+    assert resolve_config(None, "cpu", dict(env="franka_reach")).warmup_env_steps == 0
+    assert all(resolve_config(p, "cpu").warmup_env_steps == 0 for p in PRESETS)
 
 
 def test_documented_t2_fine_tune_is_the_committed_run():

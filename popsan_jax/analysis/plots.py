@@ -19,6 +19,7 @@ import numpy as np
 from popsan_jax.errors import CheckpointError, UserError
 from popsan_jax.io import read_jsonl
 from popsan_jax.schema import check_metrics_record
+from popsan_jax.training.checkpoint_index import WARMUP
 
 ACTOR_COLOURS = {"popsan": "tab:red", "mlp": "tab:blue"}
 CURVE_KEYS = (
@@ -104,10 +105,16 @@ class RunCurves:
     actor: str
     env_steps: np.ndarray
     values: dict[str, np.ndarray] = field(default_factory=dict)
+    warmup_steps: float = 0.0  # env steps of the run's warm-up stage (training/stages.py)
 
 
 def read_run_curves(run_dir: str | os.PathLike) -> RunCurves:
-    """Read the ``eval`` lines of ``run_dir/metrics.jsonl`` (actor name from ``config.json``)."""
+    """Read the ``eval`` lines of ``run_dir/metrics.jsonl`` (actor name from ``config.json``).
+
+    For a run with a warm-up stage (``run_dir/warmup/``), ``env_steps`` count the warm-up's too:
+    the run's own evaluations sit after the warm-up's last env step, so "env steps to 90 %" is the
+    run's whole cost. The warm-up's own evaluations (on the gentler env) are not curve points.
+    """
     run_dir = Path(run_dir)
     metrics = run_dir / "metrics.jsonl"
     if not metrics.is_file():
@@ -135,8 +142,18 @@ def read_run_curves(run_dir: str | os.PathLike) -> RunCurves:
         # their pick-and-hold success was never measured during training.
         values["reached_rate"] = values["success_rate"]
         values["success_rate"] = np.full_like(values["success_rate"], np.nan)
-    steps = np.asarray([r["env_steps"] for r in rows], dtype=float)
-    return RunCurves(label=run_dir.name, actor=actor, env_steps=steps, values=values)
+    warmup = _warmup_steps(run_dir)
+    steps = warmup + np.asarray([r["env_steps"] for r in rows], dtype=float)
+    return RunCurves(run_dir.name, actor, steps, values, warmup_steps=warmup)
+
+
+def _warmup_steps(run_dir: Path) -> float:
+    """The last env step of ``run_dir``'s warm-up stage (0.0 when it has none)."""
+    metrics = run_dir / WARMUP / "metrics.jsonl"
+    if not metrics.is_file():
+        return 0.0
+    rows = read_jsonl(metrics, check_metrics_record)
+    return float(max((r["env_steps"] for r in rows), default=0))
 
 
 def plot_compare(runs: Sequence[RunCurves], path: str | os.PathLike) -> Path:
@@ -165,6 +182,8 @@ def plot_compare(runs: Sequence[RunCurves], path: str | os.PathLike) -> Path:
                 ms=3,
                 label=f"{name}: {run.label}",
             )
+            if run.warmup_steps:  # where the run's own stage began
+                ax.axvline(run.warmup_steps, color=colour, lw=0.8, alpha=0.5, ls=":")
     from matplotlib.ticker import EngFormatter  # after _pyplot() chose the backend
 
     for ax, (_, ylabel) in zip(axes, CURVE_KEYS, strict=True):

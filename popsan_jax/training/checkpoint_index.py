@@ -29,6 +29,7 @@ from popsan_jax.training.run_dir import contained
 
 INDEX = "index.json"
 CONFIG = "config.json"
+WARMUP = "warmup"  # a run's warm-up stage: a run directory inside it (training/stages.py)
 
 
 def checkpoint_dir(run_dir: str | os.PathLike) -> Path:

@@ -45,7 +45,7 @@ from popsan_jax.training.iteration import (
 from popsan_jax.training.run_dir import RunLock, check_run_dir
 from popsan_jax.training.run_log import RunLogger, SilentLogger, wandb_available
 from popsan_jax.training.setup import build_networks, make_env, make_optimizer
-from popsan_jax.training.warm_start import warm_start
+from popsan_jax.training.warm_start import warm_source, warm_start
 
 
 @dataclasses.dataclass
@@ -159,14 +159,15 @@ def train(
     key = jax.random.PRNGKey(config.seed)
     key, key_init = jax.random.split(key)
     state = init_training_state(config, t.networks, t.optimizer, t.env.observation_size, key_init)
+    source = warm_source(config, run_dir)
 
     def start() -> dict[str, Any]:
         """Process 0: lock the run, restore or warm-start its state."""
         nonlocal state, key
         restart = resume and not checkpoint_index.index_path(run_dir).exists()
         if not resume or restart:
-            if config.init_from:
-                state = warm_start(state, config, t.optimizer, environment)
+            if source is not None:
+                state = warm_start(state, config, t.optimizer, source, environment)
             run_dir.mkdir(parents=True, exist_ok=True)
         lock.acquire()
         if restart:
@@ -184,6 +185,7 @@ def train(
         state, key = distributed.broadcast_from_main((state, key))
         if int(state.env_steps) >= config.num_iterations * config.env_steps_per_iteration:
             return TrainResult(state=state, key=key, last_eval=None, run_dir=run_dir, finished=True)
+        started["source"] = source
         return _train_started(t, config, run_dir, state, key, started, progress, on_iteration)
     except OSError as e:  # ENOSPC, EROFS... writing the config, the metrics or TensorBoard's log
         if not main:
@@ -239,10 +241,9 @@ def _train_started(
             f"{config.env_steps_per_iteration} env steps/iteration, "
             f"{config.num_iterations} iterations (starting at {start_iteration}) -> {run_dir}"
         )
-        if config.init_from and not started["resume"]:
-            logger.message(
-                f"initialised from {config.init_from} ({config.init_checkpoint} checkpoint)"
-            )
+        source = started["source"]
+        if source is not None and not started["resume"]:
+            logger.message(f"initialised from {source[0]} ({source[1]} checkpoint)")
         key, key_env = jax.random.split(key)
         env_keys = distributed.local_slice(jax.random.split(key_env, config.num_envs))
         env_state = jax.pmap(t.wrapped.reset)(env_keys)
@@ -253,7 +254,7 @@ def _train_started(
                 last_eval = logger.log("eval", 0, evaluate(state, key_eval))
         state_r = jax.device_put_replicated(state, devices)
         del state
-        if start_steps or config.init_from:  # a trained policy: see stagger_episodes
+        if start_steps or source is not None:  # a trained policy: see stagger_episodes
             logger.message("trained policy: spreading the envs over episode phases (not counted)")
             key, key_stagger = jax.random.split(key)
             env_state = _stagger(t, make_policy)(

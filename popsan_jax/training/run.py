@@ -9,9 +9,16 @@ from pathlib import Path
 from typing import Any
 
 from popsan_jax import distributed
-from popsan_jax.config import RunConfig, resolve_config
+from popsan_jax.config import RunConfig
 from popsan_jax.errors import CheckpointError, ConfigError
-from popsan_jax.training.checkpoint_index import CONFIG, index_path, read_index
+from popsan_jax.recipes import resolve_config
+from popsan_jax.training.checkpoint_index import (
+    CONFIG,
+    WARMUP,
+    has_checkpoint,
+    index_path,
+    read_index,
+)
 from popsan_jax.training.run_dir import check_name, check_runs_dir
 
 RESUMABLE = {"total_env_steps"}  # the only field a resumed run may change
@@ -78,6 +85,11 @@ def interrupted_message(run_dir: Path | None) -> str:
     except CheckpointError:
         if not (Path(run_dir) / CONFIG).is_file():
             return "interrupted before anything was written"
+        if has_checkpoint(Path(run_dir) / WARMUP):
+            return (
+                f"interrupted; the warm-up stage's last checkpoint is kept; resume with: "
+                f"python train.py --resume {run_dir}"
+            )
         return (
             f"interrupted before the first checkpoint; train it again from step 0 with: "
             f"python train.py --resume {run_dir}"

@@ -12,7 +12,7 @@ from _gl import gl_available
 from _report import run_eval
 
 from popsan_jax.analysis.video import GL_BACKENDS
-from popsan_jax.config import resolve_config
+from popsan_jax.recipes import resolve_config
 from popsan_jax.training import checkpoint, checkpoint_index
 from popsan_jax.training.iteration import init_training_state
 from popsan_jax.training.setup import build_networks, make_env, make_optimizer

@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 from _toy_env import PointPick
 
+from popsan_jax.config import RunConfig
 from popsan_jax.errors import ConfigError
 from popsan_jax.training.checkpoint import load_run
 from popsan_jax.training.iteration import init_training_state
 from popsan_jax.training.setup import build_networks, make_optimizer
-from popsan_jax.training.warm_start import warm_start
+from popsan_jax.training.warm_start import warm_source, warm_start
 
 
 def test_warm_start_copies_networks_normaliser_and_not_the_optimiser(source_and_penalised):
@@ -29,7 +30,9 @@ def test_warm_start_copies_networks_normaliser_and_not_the_optimiser(source_and_
     fresh = init_training_state(
         config, nets, optimizer, env.observation_size, jax.random.PRNGKey(5)
     )
-    state = warm_start(fresh, config, optimizer, env)
+    source = warm_source(config, root / "new")
+    assert source == (str(root / "source"), "last")
+    state = warm_start(fresh, config, optimizer, source, env)
     for got, want in [
         (state.params.policy, loaded.policy_params),
         (state.params.value, loaded.value_params),
@@ -41,7 +44,18 @@ def test_warm_start_copies_networks_normaliser_and_not_the_optimiser(source_and_
     assert counts == {0} and int(state.env_steps) == 0
     wider = config.replace(actor_kwargs={**kwargs, "hidden_sizes": (32,)})
     with pytest.raises(ConfigError, match="actor hidden_sizes"):
-        warm_start(fresh, wider, optimizer, env)
+        warm_start(fresh, wider, optimizer, source, env)
     mlp = config.replace(actor="mlp", actor_kwargs={"hidden_sizes": (16,)})
     with pytest.raises(ConfigError, match="its actor 'popsan' differs"):
-        warm_start(fresh, mlp, optimizer, env)
+        warm_start(fresh, mlp, optimizer, source, env)
+
+
+def test_warm_source_prefers_the_runs_own_warm_up(tmp_path):
+    # A run with a warm-up stage starts its own stage from the warm-up's last checkpoint, even
+    # when it has init_from (which the warm-up stage itself starts from).
+    plain = RunConfig()
+    assert warm_source(plain, tmp_path) is None
+    given = plain.replace(init_from="runs/a", init_checkpoint="best")
+    assert warm_source(given, tmp_path) == ("runs/a", "best")
+    staged = given.replace(warmup_env_steps=1000)
+    assert warm_source(staged, tmp_path / "r") == (str(tmp_path / "r" / "warmup"), "last")

@@ -1,0 +1,96 @@
+"""A run with a warm-up stage (popsan_jax/training/stages.py): layout, resume of an interrupted
+warm-up, the run's own stage starting from the warm-up's last checkpoint, the learning curve's
+env steps counting both stages."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+from _toy_env import PointPick, tiny_config
+
+from popsan_jax.analysis.plots import read_run_curves
+from popsan_jax.config import RunConfig
+from popsan_jax.training.checkpoint import load_run
+from popsan_jax.training.run import interrupted_message
+from popsan_jax.training.run_log import read_metrics
+from popsan_jax.training.stages import train_run, warmup_config
+
+STEPS = 640  # env steps per iteration of tiny_config()
+
+
+def test_warmup_config_merges_overrides_and_drops_its_own_warm_up():
+    config = RunConfig(
+        env_overrides={"reward_scales": {"lift": 2.0}, "action_scale": 1.0},
+        warmup_env_overrides={"reward_scales": {"object_speed": 0.0}, "finger_target_low": 0.0},
+        warmup_env_steps=6000,
+        warmup_actor_lr=1e-3,
+        warmup_num_evals=3,
+        total_env_steps=2000,
+        actor_lr=3e-4,
+        num_evals=8,
+        seed=4,
+    )
+    warm = warmup_config(config)
+    assert warm.env_overrides == {
+        "reward_scales": {"object_speed": 0.0, "lift": 2.0},
+        "finger_target_low": 0.0,
+        "action_scale": 1.0,
+    }
+    assert (warm.total_env_steps, warm.actor_lr, warm.num_evals) == (6000, 1e-3, 3)
+    assert warm.warmup_env_steps == 0 and warm.warmup_env_overrides == {}
+    assert warm.seed == 4 and warm.critic_lr == config.critic_lr
+
+
+def test_interrupted_warm_up_resumes_then_the_run_starts_from_its_last_checkpoint(tmp_path):
+    # 2 warm-up iterations (a checkpoint after each), interrupted during the second; resumed,
+    # the warm-up ends and the run's own stage (1 iteration) starts from its last checkpoint.
+    # The own stage's lrs are ~0, so its final policy must be the warm-up's last one.
+    config = tiny_config(
+        total_env_steps=STEPS,
+        num_evals=1,
+        actor_lr=1e-12,
+        critic_lr=1e-12,
+        warmup_env_steps=2 * STEPS,
+        warmup_actor_lr=1e-2,
+        warmup_num_evals=2,
+    )
+    run = tmp_path / "staged"
+    calls = []
+
+    def stop_in_second(steps, metrics):
+        calls.append(steps)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train_run(config, run, environment=PointPick(), progress=False, on_iteration=stop_in_second)
+    assert RunConfig.from_json(run / "config.json") == config
+    assert RunConfig.from_json(run / "warmup" / "config.json") == warmup_config(config)
+    assert not (run / "metrics.jsonl").exists()
+    assert "warm-up stage's last checkpoint is kept" in interrupted_message(run)
+
+    result = train_run(config, run, resume=True, environment=PointPick(), progress=False)
+    warm_steps = [r["env_steps"] for r in read_metrics(run / "warmup", "train")]
+    assert warm_steps == [STEPS, 2 * STEPS]  # the second iteration again, not from step 0
+    assert [r["env_steps"] for r in read_metrics(run, "train")] == [STEPS]
+    assert int(result.state.env_steps) == STEPS
+    warm = load_run(run / "warmup", "last", environment=PointPick())
+    final = load_run(run, "last", environment=PointPick())
+    for a, b in zip(
+        jax.tree.leaves(final.policy_params), jax.tree.leaves(warm.policy_params), strict=True
+    ):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+
+    curves = read_run_curves(run)
+    assert curves.warmup_steps == 2 * STEPS
+    assert list(curves.env_steps) == [2 * STEPS, 3 * STEPS]  # own evaluations at 0 and STEPS
+    evals = [r["env_steps"] for r in read_metrics(run, "eval")]
+    assert evals == [0, STEPS]
+    assert json.loads((run / "config.json").read_text())["warmup_env_steps"] == 2 * STEPS
+
+    # Resumed again: both stages are finished; nothing is trained.
+    again = train_run(config, run, resume=True, environment=PointPick(), progress=False)
+    assert again.finished and len(read_metrics(run / "warmup", "train")) == 2
