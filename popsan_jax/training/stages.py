@@ -19,6 +19,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import jax
+
 from popsan_jax import distributed
 from popsan_jax.config import RunConfig
 from popsan_jax.training.checkpoint_index import CONFIG, WARMUP
@@ -49,6 +51,7 @@ def train_run(
     """Train ``config`` into ``run_dir``: its warm-up stage first when it has one (resumed if
     ``resume`` and it was begun), then its own stage. ``kwargs`` go to :func:`train`."""
     run_dir = Path(run_dir)
+    config.validate(jax.device_count())  # before the run directory is made (sizes are global)
     if not config.warmup_env_steps:
         return train(config, run_dir, resume=resume, **kwargs)
 

@@ -13,6 +13,7 @@ from _toy_env import PointPick, tiny_config
 
 from popsan_jax.analysis.plots import read_run_curves
 from popsan_jax.config import RunConfig
+from popsan_jax.errors import ConfigError
 from popsan_jax.training.checkpoint import load_run
 from popsan_jax.training.run import interrupted_message
 from popsan_jax.training.run_log import read_metrics
@@ -94,3 +95,10 @@ def test_interrupted_warm_up_resumes_then_the_run_starts_from_its_last_checkpoin
     # Resumed again: both stages are finished; nothing is trained.
     again = train_run(config, run, resume=True, environment=PointPick(), progress=False)
     assert again.finished and len(read_metrics(run / "warmup", "train")) == 2
+
+
+def test_bad_warm_up_is_refused_before_anything_is_written(tmp_path):
+    config = tiny_config(warmup_env_steps=-5)
+    with pytest.raises(ConfigError, match="warmup_env_steps must be >= 0"):
+        train_run(config, tmp_path / "bad", environment=PointPick(), progress=False)
+    assert not (tmp_path / "bad").exists()
