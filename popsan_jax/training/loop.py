@@ -185,7 +185,6 @@ def train(
         state, key = distributed.broadcast_from_main((state, key))
         if int(state.env_steps) >= config.num_iterations * config.env_steps_per_iteration:
             return TrainResult(state=state, key=key, last_eval=None, run_dir=run_dir, finished=True)
-        started["source"] = source
         return _train_started(t, config, run_dir, state, key, started, progress, on_iteration)
     except OSError as e:  # ENOSPC, EROFS... writing the config, the metrics or TensorBoard's log
         if not main:
@@ -241,7 +240,7 @@ def _train_started(
             f"{config.env_steps_per_iteration} env steps/iteration, "
             f"{config.num_iterations} iterations (starting at {start_iteration}) -> {run_dir}"
         )
-        source = started["source"]
+        source = warm_source(config, run_dir)
         if source is not None and not started["resume"]:
             logger.message(f"initialised from {source[0]} ({source[1]} checkpoint)")
         key, key_env = jax.random.split(key)
