@@ -32,9 +32,15 @@ def make_evaluate_fn(
         episode_length=episode_length,
     )
 
+    device = jax.local_devices()[0]
+
     def evaluate(state: TrainingState, key: jax.Array) -> dict[str, float]:
         t0 = time.monotonic()
-        batch = jax.device_get(runner((state.normalizer_params, state.params.policy), key))
+        # Committed to one device whatever the caller holds (the initial state's host arrays
+        # or a pmapped state's first copy): the runner compiles once per run, not twice,
+        # and on franka_pick one compile is minutes and ~15 GB.
+        inputs = jax.device_put(((state.normalizer_params, state.params.policy), key), device)
+        batch = jax.device_get(runner(*inputs))
         return eval_record(batch, time.monotonic() - t0)
 
     return evaluate

@@ -24,7 +24,8 @@ from tensorboardX.proto import event_pb2
 
 from popsan_jax.errors import NonFiniteError
 from popsan_jax.networks import actor_variables, make_actor
-from popsan_jax.training import checkpoint, checkpoint_index, iteration
+from popsan_jax.rollout import make_episode_runner
+from popsan_jax.training import checkpoint, checkpoint_index, evaluation, iteration
 from popsan_jax.training.loop import train
 from popsan_jax.training.run_log import read_metrics
 from popsan_jax.training.setup import build_networks, make_optimizer
@@ -89,6 +90,28 @@ def test_run_directory_contents(two_iteration_run):
     assert int(result.state.env_steps) == 2 * STEPS
     # 2 iterations x 2 epochs x 4 minibatches of Adam steps
     assert _adam_counts(result.state.opt_state) == [16]
+
+
+def test_evaluation_compiles_once_per_run(tmp_path, monkeypatch):
+    """The step-0 evaluation gets the initial state (host arrays), later ones a pmapped
+    state's first copy (committed device arrays): the runner must see one signature, since
+    on franka_pick a second compile costs minutes and ~15 GB mid-run."""
+    runners = []
+
+    def recording(*args, **kwargs):
+        runners.append(make_episode_runner(*args, **kwargs))
+        return runners[-1]
+
+    monkeypatch.setattr(evaluation, "make_episode_runner", recording)
+    train(
+        tiny_config(total_env_steps=2 * STEPS),
+        tmp_path / "run",
+        environment=PointPick(),
+        progress=False,
+    )
+    evals = [r for r in read_metrics(tmp_path / "run") if r["kind"] == "eval"]
+    assert [r["env_steps"] for r in evals] == [0, STEPS, 2 * STEPS]
+    assert len(runners) == 1 and runners[0]._cache_size() == 1
 
 
 def test_load_run_rebuilds_the_saved_policy(two_iteration_run):
