@@ -24,12 +24,17 @@ Reward (PixMC's terms; ``state.metrics`` carries each UNSCALED term; scales in
 
     dist_left/right = 1 / (0.04 + max(|obj - tip|, 0.02))        scale 0.08 each
     lift            = 0.5 if obj_z - z_rest > 0.015 and held       scale 4.0
+                      (lift_ramp > 0: 0.5 * clip((obj_z - z_rest) / lift_ramp, 0, 1) if held)
     object_goal     = 1 / (0.04 + |goal_z - obj_z|) if lifted+held scale 1.28
     goal_bonus      = 0.5 if |goal_z - obj_z| <= 0.04 and held     scale 4.0
     object_speed    = |v_obj| (m/s) if held and in the goal band    scale -6.0
     action          = sum(a^2) of the clipped action               scale -0.01
 
 ``held`` (0/1, no scale): both fingertip pads within ``grasp_radius`` (0.04 m) of the cube centre.
+``lift_ramp`` (m, default 0: PixMC's step at 1.5 cm) turns ``lift`` into a ramp that pays for every
+millimetre a held cube rises, up to ``lift_ramp``; PixMC's step gives a policy that grasps the cube on
+the table no signal until a random motion carries the held cube 1.5 cm up. ``object_goal`` keeps the
+1.5 cm gate.
 The object terms pay only while the cube is held, so no term pays for a thrown or dropped cube.
 ``object_speed`` (not PixMC's) charges the held cube's motion inside the goal band: the goal is a
 height, and with a grasp that squeezes nothing else stops a policy from swinging the held cube
@@ -110,6 +115,7 @@ def default_config() -> ml_collections.ConfigDict:
         episode_length=250,
         lift_height=0.4,
         grasp_radius=0.04,
+        lift_ramp=0.0,
         hold_seconds=2.0,
         reach_steps=10,
         sim_dt=0.01,
@@ -137,9 +143,11 @@ def pick_reward_terms(
     grasp_radius: float,
     obj_vel: jax.Array,
     z_rest: float = Z_REST,
+    lift_ramp: float = 0.0,
 ) -> dict[str, jax.Array]:
     """Unscaled reward terms for one env: ``obj``/tips ``[3]``, ``action`` ``[9]``, the cube's
-    linear velocity ``obj_vel`` ``[3]`` (m/s).
+    linear velocity ``obj_vel`` ``[3]`` (m/s). ``lift_ramp`` (m): 0 for PixMC's lift step at
+    1.5 cm, else the height over which the lift term ramps from 0 to 0.5.
 
     The object terms (lift, object_goal, goal_bonus) count only while ``is_held``; ``held``
     itself (0/1) is returned too, for the success counter and the metrics (it has no scale).
@@ -149,11 +157,15 @@ def pick_reward_terms(
     held = is_held(d_left, d_right, grasp_radius)
     lifted = held & ((obj[2] - z_rest) > 0.015)
     og_d = jnp.abs(goal_z - obj[2])
+    if lift_ramp > 0:
+        lift = jnp.where(held, 0.5 * jnp.clip((obj[2] - z_rest) / lift_ramp, 0.0, 1.0), 0.0)
+    else:
+        lift = jnp.where(lifted, 0.5, 0.0)
     return as_f32_dict(
         dict(
             dist_left=1.0 / (0.04 + jnp.maximum(d_left, 0.02)),
             dist_right=1.0 / (0.04 + jnp.maximum(d_right, 0.02)),
-            lift=jnp.where(lifted, 0.5, 0.0),
+            lift=lift,
             object_goal=jnp.where(lifted, 1.0 / (0.04 + og_d), 0.0),
             goal_bonus=jnp.where(held & (og_d <= 0.04), 0.5, 0.0),
             object_speed=jnp.where(
@@ -275,6 +287,7 @@ class FrankaPick(PandaEnv):
             action,
             self._grasp_radius,
             data.qvel[self._obj_qvel : self._obj_qvel + 3],
+            lift_ramp=float(self.config.lift_ramp),
         )
 
     def _obs(self, data) -> jax.Array:

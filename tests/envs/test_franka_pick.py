@@ -81,10 +81,12 @@ def test_reward_terms_hand_computed():
     left = jnp.array([0.5, 0.03, 0.02])
     right = jnp.array([0.5, -0.01, 0.02])
 
-    def terms(obj_z, radius, tips=(left, right), action=None, vel=(0.3, 0.0, -0.4)):
+    def terms(obj_z, radius, tips=(left, right), action=None, vel=(0.3, 0.0, -0.4), ramp=0.0):
         obj = jnp.array([0.5, 0.0, obj_z])
         action = jnp.zeros(9) if action is None else action
-        return pick_reward_terms(obj, *tips, goal_z, action, radius, jnp.array(vel))
+        return pick_reward_terms(
+            obj, *tips, goal_z, action, radius, jnp.array(vel), lift_ramp=ramp
+        )
 
     # PixMC's ungated terms (grasp_radius 0). On the floor: left tip 3 cm away, right tip 1 cm
     # (clamped to 2 cm); not lifted.
@@ -106,6 +108,11 @@ def test_reward_terms_hand_computed():
     assert float(terms(0.53, 0.0)["object_speed"]) == 0.0
     # Barely above the 1.5 cm lift threshold vs barely below it.
     assert float(terms(0.036, 0.0)["lift"]) == 0.5 and float(terms(0.034, 0.0)["lift"]) == 0.0
+    # A 1.5 cm ramp instead: 0 at rest (and below it), 0.5 * 6 / 15 at 6 mm, 0.5 from 1.5 cm up;
+    # object_goal keeps its 1.5 cm gate.
+    ramp = [float(terms(z, 0.0, ramp=0.015)["lift"]) for z in (0.015, 0.02, 0.026, 0.036, 0.3)]
+    assert ramp == pytest.approx([0.0, 0.0, 0.2, 0.5, 0.5], abs=1e-6)
+    assert float(terms(0.026, 0.0, ramp=0.015)["object_goal"]) == 0.0
 
     # Grasp-gated (0.04 m): the same lifted cube far from the tips (a toss) earns no object term.
     t = terms(0.39, 0.04)
@@ -125,6 +132,11 @@ def test_reward_terms_hand_computed():
         one_off = (jnp.array([0.5, gap, 0.39]), pads[1])
         assert bool(is_held(jnp.float32(gap), jnp.float32(0.018), 0.04)) == held
         assert float(terms(0.39, 0.04, tips=one_off)["lift"]) == (0.5 if held else 0.0)
+    # The ramp is grasp-gated too: a cube 6 mm up with the pads 10 cm above it earns nothing.
+    high_pads = (jnp.array([0.5, 0.018, 0.126]), jnp.array([0.5, -0.018, 0.126]))
+    assert float(terms(0.026, 0.04, tips=high_pads, ramp=0.015)["lift"]) == 0.0
+    low_pads = (jnp.array([0.5, 0.018, 0.026]), jnp.array([0.5, -0.018, 0.026]))
+    assert float(terms(0.026, 0.04, tips=low_pads, ramp=0.015)["lift"]) == pytest.approx(0.2)
 
 
 def test_hold_counters_match_a_python_reference():
