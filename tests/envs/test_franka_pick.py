@@ -84,9 +84,7 @@ def test_reward_terms_hand_computed():
     def terms(obj_z, radius, tips=(left, right), action=None, vel=(0.3, 0.0, -0.4), ramp=0.0):
         obj = jnp.array([0.5, 0.0, obj_z])
         action = jnp.zeros(9) if action is None else action
-        return pick_reward_terms(
-            obj, *tips, goal_z, action, radius, jnp.array(vel), lift_ramp=ramp
-        )
+        return pick_reward_terms(obj, *tips, goal_z, action, radius, jnp.array(vel), lift_ramp=ramp)
 
     # PixMC's ungated terms (grasp_radius 0). On the floor: left tip 3 cm away, right tip 1 cm
     # (clamped to 2 cm); not lifted.
