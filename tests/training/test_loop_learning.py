@@ -44,16 +44,37 @@ CASES = {
 }
 
 
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """Both actors' runs, started side by side: each process spends much of its time in one-
+    threaded XLA compiles, so on two cores the pair takes little longer than one run.
+    Returns ``{actor: (returncode, stderr, run_dir)}``."""
+    root = tmp_path_factory.mktemp("learning")
+    procs = {}
+    for actor, (lr, schedule, total, _) in CASES.items():
+        argv = [*REACH_FLAGS, "--actor", actor, "--actor-lr", str(lr), "--lr-schedule", schedule]
+        argv += ["--total-env-steps", str(total), "--runs-dir", str(root), "--name", actor]
+        with open(root / f"{actor}.stderr", "w") as log:  # the child keeps its own copy
+            procs[actor] = subprocess.Popen(
+                [sys.executable, "train.py", *argv], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=log
+            )
+    try:
+        codes = {actor: p.wait(timeout=3000) for actor, p in procs.items()}
+    finally:
+        for p in procs.values():
+            p.kill()
+    return {
+        actor: (codes[actor], (root / f"{actor}.stderr").read_text(), root / actor)
+        for actor in CASES
+    }
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("actor", sorted(CASES))
-def test_reach_success_far_above_untrained(actor, tmp_path):
-    lr, schedule, total, threshold = CASES[actor]
-    argv = [*REACH_FLAGS, "--actor", actor, "--actor-lr", str(lr), "--lr-schedule", schedule]
-    argv += ["--total-env-steps", str(total)]
-    cmd = [sys.executable, "train.py", *argv, "--runs-dir", str(tmp_path), "--name", actor]
-    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=3000)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    run_dir = tmp_path / actor
+def test_reach_success_far_above_untrained(actor, runs):
+    _, _, total, threshold = CASES[actor]
+    code, stderr, run_dir = runs[actor]
+    assert code == 0, stderr[-2000:]
     config = json.loads((run_dir / "config.json").read_text())
     assert config["actor"] == actor and config["env_overrides"]["episode_length"] == 50
     evals = read_metrics(run_dir, "eval")
