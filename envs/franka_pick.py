@@ -31,10 +31,12 @@ Reward (PixMC's terms; ``state.metrics`` carries each UNSCALED term; scales in
     action          = sum(a^2) of the clipped action               scale -0.01
 
 ``held`` (0/1, no scale): both fingertip pads within ``grasp_radius`` (0.04 m) of the cube centre.
-``lift_ramp`` (m, default 0: PixMC's step at 1.5 cm) turns ``lift`` into a ramp that pays for
-every millimetre a held cube rises, up to ``lift_ramp``; PixMC's step gives a policy that grasps
+``lift_ramp`` (m; default 0, PixMC's step at 1.5 cm) turns ``lift`` into a ramp that pays for
+every millimetre a held cube rises, up to ``lift_ramp``: PixMC's step gives a policy that grasps
 the cube on the table no signal until a random motion carries the held cube 1.5 cm up.
-``object_goal`` keeps the 1.5 cm gate.
+``object_goal`` keeps the 1.5 cm gate. Not the default: a ramp got one seed off the table and
+left another hovering the cube a few centimetres up (``docs/design.md``, "A ramp for the first
+centimetre").
 The object terms pay only while the cube is held, so no term pays for a thrown or dropped cube.
 ``object_speed`` (not PixMC's) charges the held cube's motion inside the goal band: the goal is a
 height, and with a grasp that squeezes nothing else stops a policy from swinging the held cube
