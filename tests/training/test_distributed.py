@@ -136,7 +136,8 @@ def test_two_processes_kill_resume_and_match_one_process(tmp_path):
     # 2. the 2-process resume to the end, and 1 process x 2 devices from the same checkpoint,
     # side by side (each is mostly one-threaded compiling; the suite's time, not the result)
     out_two, out_one = tmp_path / "two", tmp_path / "one"
-    out_two.mkdir(), out_one.mkdir()
+    out_two.mkdir()
+    out_one.mkdir()
     resume = ["--no-progress", "--resume"]
     procs = _launch(
         [str(WORKER), str(out_two)], _free_port(), tmp_path / "b", [*resume, str(run_dir)]
