@@ -72,16 +72,22 @@ def _env(devices: int = 1) -> dict[str, str]:
     return env
 
 
+def _start(argv: list[str], log: Path, devices: int = 1) -> subprocess.Popen:
+    """``python argv`` from the repository root, stderr to ``log``."""
+    with open(log, "w") as err:  # the child keeps its own copy
+        return subprocess.Popen(
+            [sys.executable, *argv],
+            cwd=ROOT,
+            env=_env(devices),
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+        )
+
+
 def _launch(command: list[str], port: int, log: Path, extra: list[str]) -> list[subprocess.Popen]:
     cluster = ["--coordinator", f"127.0.0.1:{port}", "--num-processes", "2"]
     return [
-        subprocess.Popen(
-            [sys.executable, *command, *extra, *cluster, "--process-id", str(i)],
-            cwd=ROOT,
-            env=_env(),
-            stdout=subprocess.DEVNULL,
-            stderr=open(log.with_suffix(f".p{i}.log"), "w"),
-        )
+        _start([*command, *extra, *cluster, "--process-id", str(i)], log.with_suffix(f".p{i}.log"))
         for i in range(2)
     ]
 
@@ -143,13 +149,7 @@ def test_two_processes_kill_resume_and_match_one_process(tmp_path):
         [str(WORKER), str(out_two)], _free_port(), tmp_path / "b", [*resume, str(run_dir)]
     )
     one_log = tmp_path / "c.log"
-    one = subprocess.Popen(
-        [sys.executable, str(WORKER), str(out_one), *resume, str(ref_dir)],
-        cwd=ROOT,
-        env=_env(devices=2),
-        stdout=subprocess.DEVNULL,
-        stderr=open(one_log, "w"),
-    )
+    one = _start([str(WORKER), str(out_one), *resume, str(ref_dir)], one_log, devices=2)
     codes = _wait([*procs, one], timeout=500)
     assert codes[:2] == [0, 0], (tmp_path / "b.p0.log").read_text()[-3000:]
     assert codes[2] == 0, one_log.read_text()[-3000:]
