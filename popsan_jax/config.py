@@ -66,6 +66,11 @@ class RunConfig:
     )
     init_log_std: float = _flag(-0.5, "initial exploration log-std")
     obs_clip: float = _flag(3.0, "clip of the normalised observations")
+    # Episodes of the untrained policy whose observations seed the normaliser before a fresh
+    # run's first update (popsan_jax/training/iteration.py, prime_normalizer); not counted.
+    prime_normalizer_episodes: int = _flag(
+        0, "untrained-policy episodes that seed the obs normaliser before training (not counted)"
+    )
     seed: int = _flag(0, "random seed")
     # Sizes.
     num_envs: int = _flag(256, "parallel training envs")
@@ -161,6 +166,10 @@ class RunConfig:
         for name, value in positive.items():
             if value < 1:
                 raise ConfigError(f"{name} must be >= 1, got {value}")
+        if self.prime_normalizer_episodes < 0:
+            raise ConfigError(
+                f"prime_normalizer_episodes must be >= 0, got {self.prime_normalizer_episodes}"
+            )
         if self.warmup_env_steps < 0:
             raise ConfigError(f"warmup_env_steps must be >= 0, got {self.warmup_env_steps}")
         if self.warmup_env_steps and (self.warmup_num_evals < 1 or not self.warmup_actor_lr > 0):

@@ -129,6 +129,49 @@ def stagger_episodes(
     return env_state
 
 
+def prime_normalizer(
+    env: Any,
+    env_state: Any,
+    policy: Callable[[jax.Array, jax.Array], tuple[jax.Array, Any]],
+    normalizer_params: running_statistics.RunningStatisticsState,
+    key: jax.Array,
+    num_steps: int,
+    axis_name: str | None = AXIS,
+) -> tuple[running_statistics.RunningStatisticsState, Any]:
+    """Seed the observation normaliser with ``num_steps`` steps of ``policy``, no SGD.
+
+    A fresh normaliser is the identity (mean 0, std 1), so the first unroll's behaviour policy
+    acts on raw observations while its update sees normalised ones: the two policies differ,
+    and for the MLP the first update's KL is 4-8 instead of PopSAN's 0.04 (docs/design.md,
+    "Priming the normaliser"). Stepping the untrained policy for an episode first and adding
+    what it saw makes the behaviour policy of iteration 1 act on normalised observations.
+    Costs ``num_steps * E`` uncounted env steps.
+
+    Args:
+      env: the training-wrapped (vmapped, auto-reset) env.
+      env_state: its batched state, ``E`` envs on this device.
+      policy: ``policy(obs [E, O], key) -> (action [E, A], extras)``, the untrained one.
+      normalizer_params: the fresh normaliser state.
+      key: rng for the actions.
+      num_steps: control steps to take (a whole number of episodes brings every env back to
+        the start of one).
+      axis_name: pmap axis to pool the statistics over (None: this device alone).
+
+    Returns:
+      ``(normalizer_params, env_state)``, the statistics of all ``num_steps * E`` observations
+      ``[num_steps, E, O]`` added.
+    """
+
+    def body(carry, _):
+        state, k = carry
+        k, k_act = jax.random.split(k)
+        return (env.step(state, policy(state.obs, k_act)[0]), k), state.obs
+
+    (env_state, _), obs = jax.lax.scan(body, (env_state, key), None, length=num_steps)
+    normalizer_params = running_statistics.update(normalizer_params, obs, pmap_axis_name=axis_name)
+    return normalizer_params, env_state
+
+
 def make_iteration_fn(
     config: RunConfig,
     env: Any,

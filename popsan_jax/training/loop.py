@@ -40,6 +40,7 @@ from popsan_jax.training.iteration import (
     TrainingState,
     init_training_state,
     make_iteration_fn,
+    prime_normalizer,
     stagger_episodes,
 )
 from popsan_jax.training.run_dir import RunLock, check_run_dir
@@ -109,6 +110,21 @@ def _stagger(t: Trainer, make_policy: Callable[..., Any]) -> Callable[..., Any]:
         return stagger_episodes(t.wrapped, env_state, policy, key, t.episode_length)
 
     return jax.pmap(stagger)
+
+
+def _prime(t: Trainer, make_policy: Callable[..., Any]) -> Callable[..., Any]:
+    """pmapped ``(state [D], env_state [D], keys [D]) -> (state, env_state)``: the normaliser
+    seeded by prime_normalizer with the run's untrained stochastic policy."""
+
+    def prime(state: TrainingState, env_state: Any, key: jax.Array) -> tuple[Any, Any]:
+        policy = make_policy((state.normalizer_params, state.params.policy))
+        steps = t.config.prime_normalizer_episodes * t.episode_length
+        normalizer, env_state = prime_normalizer(
+            t.wrapped, env_state, policy, state.normalizer_params, key, steps
+        )
+        return state.replace(normalizer_params=normalizer), env_state
+
+    return jax.pmap(prime, axis_name=AXIS)
 
 
 def _unreplicate(tree: Any) -> Any:
@@ -253,6 +269,15 @@ def _train_started(
                 last_eval = logger.log("eval", 0, evaluate(state, key_eval))
         state_r = jax.device_put_replicated(state, devices)
         del state
+        if config.prime_normalizer_episodes and not start_steps and source is None:
+            logger.message(
+                f"priming the observation normaliser: {config.prime_normalizer_episodes} "
+                "episode(s) of the untrained policy (not counted)"
+            )
+            key, key_prime = jax.random.split(key)
+            state_r, env_state = _prime(t, make_policy)(
+                state_r, env_state, distributed.device_keys(key_prime)
+            )
         if start_steps or source is not None:  # a trained policy: see stagger_episodes
             logger.message("trained policy: spreading the envs over episode phases (not counted)")
             key, key_stagger = jax.random.split(key)

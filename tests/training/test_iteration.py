@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from _toy_env import PointPick, tiny_config
 from brax.envs.wrappers import training as brax_training
+from brax.training.acme import running_statistics
 
 from popsan_jax.training import iteration
 from popsan_jax.training.diagnostics import make_diagnostics_fn
@@ -79,3 +80,33 @@ def test_all_finite():
     assert not bool(iteration.all_finite({"a": jnp.array([1.0, jnp.nan])}))
     assert not bool(iteration.all_finite((jnp.ones(2), jnp.array(jnp.inf))))
     assert bool(iteration.all_finite({"only_ints": jnp.arange(3)}))
+
+
+def test_prime_normalizer_holds_the_statistics_of_a_plain_rollout():
+    """One episode of a fixed policy seeds the normaliser with exactly the mean and std of the
+    observations a plain Python loop over the same env sees (before each of its L steps), and
+    adds nothing else; the envs end the episode where the loop does."""
+    length, n = 12, 8
+    env = PointPick(episode_length=length)
+    wrapped = brax_training.wrap(env, episode_length=length)
+    start = jax.jit(wrapped.reset)(jax.random.split(jax.random.PRNGKey(3), n))
+
+    def policy(obs, key):  # deterministic: half way towards the object, clipped
+        return jnp.clip(5.0 * obs[:, 3:6], -1.0, 1.0), {}
+
+    fresh = running_statistics.init_state(jnp.zeros((env.observation_size,), jnp.float32))
+    primed, end = jax.jit(
+        lambda s, k: iteration.prime_normalizer(wrapped, s, policy, fresh, k, length, None)
+    )(start, jax.random.PRNGKey(4))
+
+    step = jax.jit(wrapped.step)
+    state, seen = start, []
+    for _ in range(length):
+        seen.append(np.asarray(state.obs, np.float64))
+        state = step(state, policy(state.obs, None)[0])
+    seen = np.stack(seen)  # [L, E, O]
+    assert seen[1:].std() > 0  # the hands moved: the statistics are not those of one frame
+    assert int(primed.count) == length * n
+    np.testing.assert_allclose(primed.mean, seen.mean(axis=(0, 1)), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(primed.std, seen.std(axis=(0, 1)), rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(end.obs, state.obs, rtol=1e-6, atol=1e-7)

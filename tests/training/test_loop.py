@@ -325,3 +325,28 @@ def test_auto_reset_start_states_are_redrawn_each_iteration():
     for _ in range(3):
         s = step(s, jnp.zeros((8, 3)))
     np.testing.assert_array_equal(np.asarray(s.obs), after)
+
+
+def test_priming_seeds_a_fresh_run_only(two_iteration_run, tmp_path):
+    """prime_normalizer_episodes=2 adds 2 episodes x 16 envs of observations to a fresh run's
+    normaliser (env steps not counted); a run warm-started from another does not prime."""
+    _, source_dir, source = two_iteration_run
+    config = tiny_config(total_env_steps=STEPS, num_evals=1)
+    counts = {}
+    for name, changes in {
+        "plain": {},
+        "primed": {"prime_normalizer_episodes": 2},
+        "warm": {
+            "prime_normalizer_episodes": 2,
+            "init_from": str(source_dir),
+            "init_checkpoint": "last",
+        },
+    }.items():
+        out = train(
+            config.replace(**changes), tmp_path / name, environment=PointPick(), progress=False
+        )
+        assert int(out.state.env_steps) == STEPS
+        counts[name] = int(out.state.normalizer_params.count)
+    assert counts["plain"] == STEPS
+    assert counts["primed"] == STEPS + 2 * 12 * 16
+    assert counts["warm"] == int(source.state.normalizer_params.count) + STEPS
