@@ -38,6 +38,7 @@ def test_reset_and_step_shapes_finite_and_stable_avals(pick, stepped):  # noqa: 
         "lift",
         "object_goal",
         "goal_bonus",
+        "climb",
         "action",
         "success",
         "reached",
@@ -111,17 +112,22 @@ def test_reward_terms_hand_computed():
     ramp = [float(terms(z, 0.0, ramp=0.015)["lift"]) for z in (0.015, 0.02, 0.026, 0.036, 0.3)]
     assert ramp == pytest.approx([0.0, 0.0, 0.2, 0.5, 0.5], abs=1e-6)
     assert float(terms(0.026, 0.0, ramp=0.015)["object_goal"]) == 0.0
+    # climb: the held cube's share of the 0.4 m from the table (z 0.02) to the goal (0.42), in
+    # proportion and with no gate: 0 at rest and below it, 0.1 at 6 cm, 0.925 at 0.39, 1 above.
+    climb = [float(terms(z, 0.0)["climb"]) for z in (0.01, 0.02, 0.06, 0.39, 0.42, 0.5)]
+    assert climb == pytest.approx([0.0, 0.0, 0.1, 0.925, 1.0, 1.0], abs=1e-6)
 
     # Grasp-gated (0.04 m): the same lifted cube far from the tips (a toss) earns no object term.
     t = terms(0.39, 0.04)
     assert float(t["lift"]) == float(t["object_goal"]) == float(t["goal_bonus"]) == 0.0
+    assert float(t["climb"]) == 0.0
     assert float(t["object_speed"]) == 0.0  # a flying cube is not charged either
     assert float(t["held"]) == 0.0
     assert float(t["dist_left"]) == pytest.approx(1 / (0.04 + np.hypot(0.03, 0.37)), rel=1e-5)
     # Between the pads (1.8 cm each side) it earns all three.
     pads = (jnp.array([0.5, 0.018, 0.39]), jnp.array([0.5, -0.018, 0.39]))
     t = terms(0.39, 0.04, tips=pads)
-    assert float(t["held"]) == 1.0
+    assert float(t["held"]) == 1.0 and float(t["climb"]) == pytest.approx(0.925, abs=1e-6)
     assert float(t["lift"]) == 0.5 and float(t["goal_bonus"]) == 0.5
     assert float(t["object_goal"]) == pytest.approx(1 / 0.07, rel=1e-4)
     assert float(t["dist_left"]) == pytest.approx(1 / (0.04 + 0.02), rel=1e-5)
@@ -184,7 +190,7 @@ def test_reward_and_hold_counters_through_steps(pick):  # noqa: F811
     np.testing.assert_array_equal(nxt.metrics["success"], 0.0)
     np.testing.assert_array_equal(nxt.metrics["reached"], 1.0)
     np.testing.assert_allclose(nxt.metrics["hold_time"], 150 * env.dt, rtol=1e-6)
-    for term in ("lift", "object_goal", "goal_bonus", "object_speed"):
+    for term in ("lift", "object_goal", "goal_bonus", "climb", "object_speed"):
         np.testing.assert_array_equal(nxt.metrics[term], 0.0)
     assert np.all(np.asarray(nxt.info["object_pos"])[:, 2] > env.goal_z - 0.05)
     # The step's reward is the scaled sum of its unscaled terms.
