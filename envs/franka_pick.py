@@ -45,8 +45,9 @@ through the band. It is not charged on the way up, where it would cost the same 
 climbed, whatever the speed, and stall the lift (``docs/design.md``, "Holding still").
 ``climb`` (not PixMC's; scale 0 by default, so off) pays the held cube's height in proportion,
 from the table to the goal: ``object_goal``'s ``1 / (0.04 + d)`` is nearly flat far below the
-goal (0.07 per cm at 4 cm up, against 2.6 per cm at the goal), so a policy that holds the cube
-a few centimetres up has almost no signal to climb (``docs/design.md``, "A climb term").
+goal (its slope, unscaled: 0.06 per cm at 4 cm up, 6 per cm at the goal), so a policy that
+holds the cube a few centimetres up has almost no signal to climb (``docs/design.md``, "A climb
+term").
 ``in band``: ``|goal_z - obj_z| <= 0.25 (goal_z - z_rest)`` (PixMC's success tolerance).
 
 Episode metrics (``state.metrics``; their value at an episode's last step is the episode's):
