@@ -13,6 +13,7 @@ from brax.envs.base import Env
 from envs.errors import EnvConfigError
 from envs.franka_pick import FrankaPick
 from envs.franka_reach import FrankaReach
+from envs.panda import merge_overrides
 
 _ENVS = {"franka_pick": FrankaPick, "franka_reach": FrankaReach}
 
@@ -41,10 +42,9 @@ def legacy_overrides(name: str, revision: int) -> dict[str, Any]:
     current = env_cls.revision
     if not 1 <= revision <= current:
         raise EnvConfigError(f"env {name!r} has revisions 1..{current}, not {revision}")
-    merged: dict[str, Any] = {}
-    for r in range(current - 1, revision - 1, -1):  # newest first, so older values win
-        merged.update(env_cls.legacy_overrides.get(r, {}))
-    return merged
+    # newest first, so that older values win
+    layers = [env_cls.legacy_overrides.get(r, {}) for r in range(current - 1, revision - 1, -1)]
+    return merge_overrides(*layers)
 
 
 __all__ = [
@@ -53,5 +53,6 @@ __all__ = [
     "FrankaReach",
     "get_environment",
     "legacy_overrides",
+    "merge_overrides",
     "list_environments",
 ]

@@ -23,31 +23,28 @@ Reward (PixMC's terms; ``state.metrics`` carries each UNSCALED term; scales in
 ``config.reward_scales``)::
 
     dist_left/right = 1 / (0.04 + max(|obj - tip|, 0.02))        scale 0.08 each
-    lift            = 0.5 if obj_z - z_rest > 0.015 and held       scale 4.0
-                      (lift_ramp > 0: 0.5 * clip((obj_z - z_rest) / lift_ramp, 0, 1) if held)
+    lift            = 0.5 * clip((obj_z - z_rest) / lift_ramp, 0, 1) if held   scale 4.0
+                      (lift_ramp = 0: PixMC's 0.5 if obj_z - z_rest > 0.015 and held)
     object_goal     = 1 / (0.04 + |goal_z - obj_z|) if lifted+held scale 1.28
     goal_bonus      = 0.5 if |goal_z - obj_z| <= 0.04 and held     scale 4.0
-    climb           = clip((obj_z - z_rest) / (goal_z - z_rest), 0, 1) if held   scale 0.0
+    climb           = clip((obj_z - z_rest) / (goal_z - z_rest), 0, 1) if held   scale 16.0
     object_speed    = |v_obj| (m/s) if held and in the goal band    scale -6.0
     action          = sum(a^2) of the clipped action               scale -0.01
 
 ``held`` (0/1, no scale): both fingertip pads within ``grasp_radius`` (0.04 m) of the cube centre.
-``lift_ramp`` (m; default 0, PixMC's step at 1.5 cm) turns ``lift`` into a ramp that pays for
-every millimetre a held cube rises, up to ``lift_ramp``: PixMC's step gives a policy that grasps
-the cube on the table no signal until a random motion carries the held cube 1.5 cm up.
-``object_goal`` keeps the 1.5 cm gate. Not the default: a ramp got one seed off the table and
-left another hovering the cube a few centimetres up (``docs/design.md``, "A ramp for the first
-centimetre").
+``lift_ramp`` (m; default 0.015; 0 for PixMC's step at 1.5 cm) makes ``lift`` a ramp that pays
+for every millimetre a held cube rises, up to ``lift_ramp``: PixMC's step gives a policy that
+grasps the cube on the table no signal until a random motion carries the held cube 1.5 cm up.
+``object_goal`` keeps the 1.5 cm gate (``docs/design.md``, "A ramp for the first centimetre").
 The object terms pay only while the cube is held, so no term pays for a thrown or dropped cube.
 ``object_speed`` (not PixMC's) charges the held cube's motion inside the goal band: the goal is a
 height, and with a grasp that squeezes nothing else stops a policy from swinging the held cube
 through the band. It is not charged on the way up, where it would cost the same for every metre
 climbed, whatever the speed, and stall the lift (``docs/design.md``, "Holding still").
-``climb`` (not PixMC's; scale 0 by default, so off) pays the held cube's height in proportion,
-from the table to the goal: ``object_goal``'s ``1 / (0.04 + d)`` is nearly flat far below the
-goal (its slope, unscaled: 0.06 per cm at 4 cm up, 6 per cm at the goal), so a policy that
-holds the cube a few centimetres up has almost no signal to climb (``docs/design.md``, "A climb
-term").
+``climb`` (not PixMC's) pays the held cube's height in proportion, from the table to the goal:
+``object_goal``'s ``1 / (0.04 + d)`` is nearly flat far below the goal (its slope, unscaled:
+0.06 per cm at 4 cm up, 6 per cm at the goal), so with the ramp alone policies learnt to hold
+the cube a few centimetres up and stayed there (``docs/design.md``, "A climb term").
 ``in band``: ``|goal_z - obj_z| <= 0.25 (goal_z - z_rest)`` (PixMC's success tolerance).
 
 Episode metrics (``state.metrics``; their value at an episode's last step is the episode's):
@@ -80,8 +77,9 @@ keeps a held cube in the fingers for 20 s; at 20 ms substeps so stiff a contact 
 servos eject the cube when the lift starts. Revision 3 lets the finger servo targets go 2 cm past
 the closed limit (``finger_target_low``), so that every grasp squeezes: with targets clamped at the
 limit, policies wedged the cube between one finger at each stop, with no servo force, and lost
-it. ``LEGACY_OVERRIDES`` restore revision 1 (one 20 ms substep, the default impedance,
-200-step episodes) and revision 2 (clamped finger targets) for runs saved before each change.
+it. Revision 4 charges the held cube's speed in the goal band; revision 5 pays the lift as a
+ramp and the climb in proportion. ``LEGACY_OVERRIDES`` restore each earlier revision (revision 1:
+one 20 ms substep, the default impedance, 200-step episodes) for runs saved before a change.
 """
 
 from __future__ import annotations
@@ -112,8 +110,9 @@ LEGACY_OVERRIDES: dict[int, dict[str, Any]] = {
     1: dict(sim_dt=0.02, pad_solimp=MUJOCO_DEFAULT_SOLIMP, episode_length=200),
     2: CLAMPED_FINGERS,
     3: dict(reward_scales=dict(object_speed=0.0)),
+    4: dict(lift_ramp=0.0, reward_scales=dict(climb=0.0)),
 }
-REVISION = 4
+REVISION = 5
 
 
 def default_config() -> ml_collections.ConfigDict:
@@ -123,7 +122,7 @@ def default_config() -> ml_collections.ConfigDict:
         episode_length=250,
         lift_height=0.4,
         grasp_radius=0.04,
-        lift_ramp=0.0,
+        lift_ramp=0.015,
         hold_seconds=2.0,
         reach_steps=10,
         sim_dt=0.01,
@@ -136,7 +135,7 @@ def default_config() -> ml_collections.ConfigDict:
             lift=4.0,
             object_goal=1.28,
             goal_bonus=4.0,
-            climb=0.0,
+            climb=16.0,
             object_speed=-6.0,
             action=-0.01,
         ),

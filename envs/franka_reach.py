@@ -50,8 +50,8 @@ from envs.panda import (
 SUCCESS_RADIUS = 0.02
 # 2: success = held at the target for the last hold_seconds (1: latched reach);
 # 3: finger servo targets reach past the closed limit (envs/panda.py, FINGER_TARGET_LOW);
-# 4: as 3 (franka_pick's revision 4 changed its reward only).
-REVISION = 4
+# 4, 5: as 3 (franka_pick's revisions 4 and 5 changed its reward only).
+REVISION = 5
 
 
 def default_config() -> ml_collections.ConfigDict:

@@ -69,6 +69,19 @@ def base_config(**fields: Any) -> ml_collections.ConfigDict:
     return ml_collections.ConfigDict(values)
 
 
+def merge_overrides(*layers: Mapping[str, Any]) -> dict[str, Any]:
+    """Config overrides of several sources in one dict, later layers winning key by key; nested
+    dicts (``reward_scales``) are merged the same way, so a layer that sets one scale keeps the
+    scales that earlier layers set."""
+    merged: dict[str, Any] = {}
+    for layer in layers:
+        for key, value in layer.items():
+            if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
+                value = {**merged[key], **value}
+            merged[key] = dict(value) if isinstance(value, Mapping) else value
+    return merged
+
+
 def apply_overrides(
     config: ml_collections.ConfigDict, overrides: Mapping[str, Any], env_name: str
 ) -> ml_collections.ConfigDict:

@@ -27,8 +27,9 @@ from popsan_jax.schema import check_config
 
 ACTORS = ("popsan", "mlp")
 # franka_pick/franka_reach revision 2: the grasp that holds; 3: finger targets past the closed
-# stop; 4: franka_pick charges the held cube's speed in the goal band (envs/franka_pick.py)
-CURRENT_ENV_REVISION = 4
+# stop; 4: franka_pick charges the held cube's speed in the goal band; 5: franka_pick pays the
+# lift as a ramp and the climb to the goal in proportion (envs/franka_pick.py)
+CURRENT_ENV_REVISION = 5
 LR_SCHEDULES = ("constant", "cosine")
 
 # The paper's PopSAN shape (DESIGN.md): pop 10 in and out, hidden 256-256, T = 5.

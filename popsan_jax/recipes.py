@@ -75,7 +75,8 @@ CPU_RECIPE: dict[str, Any] = dict(
 
 # franka_pick's curriculum (docs/design.md, "A gentle grasp first"; docs/results.md): the CPU
 # recipe's 6 M steps on the revision-2 task (finger targets clamped at the closed stop, no charge
-# on the held cube's speed: envs/franka_pick.py LEGACY_OVERRIDES[2] and [3]), where PPO learns a
+# on the held cube's speed: envs/franka_pick.py LEGACY_OVERRIDES[2] and [3]) with revision 5's
+# shaping (the lift ramp and the climb term, which the env's defaults set), where PPO learns a
 # gentle grasp and lift; then 2 M steps on the task itself at actor lr 3e-4. From scratch on the
 # task itself the policies learn to swing or lower the squeezed cube and never hold it.
 PICK_RECIPE: dict[str, Any] = dict(

@@ -92,19 +92,20 @@ def test_paper_preset_is_the_committed_pick_run_that_learned():
 
 
 def test_readme_command_is_the_committed_pick_hold_chain():
-    # `python train.py --env franka_pick` on a CPU (docs/results.md, "Pick-and-hold") must be
-    # the committed seed-0 chain: its warm-up is the revision-2 run of the README's earlier
-    # command (docs/reference/pick-hold-popsan-s0; revision 2 spelt out as overrides), its own
-    # stage the 2 M-step fine-tune from that run's last checkpoint
-    # (docs/reference/pick-hold-popsan-ft-s0), the warm-up taking the place of init_from.
-    # `--seed K` and `--actor mlp` change only those fields.
+    # `python train.py --env franka_pick` on a CPU (docs/results.md) must be the committed
+    # revision-4 seed-0 chain: its warm-up is the revision-2 run of the README's earlier command
+    # (docs/reference/pick-hold-popsan-s0; revision 2 spelt out as overrides), its own stage the
+    # 2 M-step fine-tune from that run's last checkpoint (docs/reference/pick-hold-popsan-ft-s0),
+    # the warm-up taking the place of init_from; revision 5 adds only the lift ramp and the climb
+    # term. `--seed K` and `--actor mlp` change only those fields.
     command = resolve_config(None, "cpu", dict(env="franka_pick"))
     fine_tune = RunConfig.from_json(ROOT / "docs/reference/pick-hold-popsan-ft-s0/config.json")
     assert fine_tune.init_from == "docs/reference/pick-hold-popsan-s0"
     assert fine_tune.init_checkpoint == "last"  # what the warm-up hands on (warm_source)
+    assert fine_tune.env_revision == 4
     warm = dict((k, PICK_RECIPE[k]) for k in PICK_RECIPE if k.startswith("warmup_"))
-    assert command == fine_tune.replace(init_from=None, init_checkpoint="best", **warm)
-    assert command.env_revision == CURRENT_ENV_REVISION
+    as_fine_tune = fine_tune.replace(init_from=None, init_checkpoint="best", **warm)
+    assert command == as_fine_tune.replace(env_revision=CURRENT_ENV_REVISION)
     revision_2 = RunConfig.from_json(ROOT / "docs/reference/pick-hold-popsan-s0/config.json")
     assert revision_2.env_revision == 2
     as_revision_2 = warmup_config(command).replace(env_overrides={}, env_revision=2)
@@ -113,10 +114,28 @@ def test_readme_command_is_the_committed_pick_hold_chain():
     assert mlp.replace(actor="popsan", seed=0, actor_kwargs=command.actor_kwargs) == command
 
 
+def test_readme_command_is_the_committed_climb_runs():
+    # The three-seed headline (docs/results.md, "Revision 5") was trained on revision 4 with the
+    # ramp and the climb term as overrides: the same run config as the README's command, and in
+    # both stages the same env (revision 5 made those overrides the defaults).
+    for seed in (0, 1, 2):
+        path = ROOT / f"docs/results/climb/popsan-climb-s{seed}/config.json"
+        committed = RunConfig.from_json(path)
+        assert committed.env_revision == 4
+        assert committed.env_overrides == {"lift_ramp": 0.015, "reward_scales": {"climb": 16.0}}
+        command = resolve_config(None, "cpu", dict(env="franka_pick", seed=seed))
+        assert command == committed.replace(env_overrides={}, env_revision=CURRENT_ENV_REVISION)
+        for stage in (lambda c: c, warmup_config):
+            assert make_env(stage(committed)).config == make_env(stage(command)).config
+
+
 def test_pick_warm_up_is_the_revision_2_task():
     # The warm-up's overrides mean exactly what env revision 2 meant (clamped finger targets,
-    # no charge on the held cube's speed), as the env itself defines its old revisions.
-    assert PICK_RECIPE["warmup_env_overrides"] == envs.legacy_overrides("franka_pick", 2)
+    # no charge on the held cube's speed), as the env itself defines its old revisions, except
+    # that it keeps revision 5's shaping (the lift ramp and the climb term).
+    revision_5_shaping_undone = envs.legacy_overrides("franka_pick", 4)
+    warm = envs.merge_overrides(PICK_RECIPE["warmup_env_overrides"], revision_5_shaping_undone)
+    assert warm == envs.legacy_overrides("franka_pick", 2)
     cpu, gpu = resolve_config(None, "cpu"), resolve_config(None, "gpu")
     assert cpu.warmup_env_steps == 6_000_000 and cpu.total_env_steps == 2_000_000
     assert gpu.warmup_env_steps == 4 * cpu.warmup_env_steps
@@ -186,7 +205,7 @@ def test_config_without_env_revision_rebuilds_the_env_it_was_trained_with(tmp_pa
     # back with the physics it was trained with (one 20 ms substep, MuJoCo's default pad
     # impedance, 200-step episodes), and its own overrides still win.
     fresh = resolve_config(overrides=dict(env="franka_pick"))
-    assert fresh.env_revision == CURRENT_ENV_REVISION == 4
+    assert fresh.env_revision == CURRENT_ENV_REVISION == 5
     data = fresh.to_dict()
     del data["env_revision"]
     data["env_overrides"] = {"grasp_radius": 0.05}
@@ -197,16 +216,21 @@ def test_config_without_env_revision_rebuilds_the_env_it_was_trained_with(tmp_pa
     legacy = envs.legacy_overrides("franka_pick", 1)
     assert legacy["sim_dt"] == 0.02 and legacy["episode_length"] == 200
     assert legacy["finger_target_low"] == 0.0  # later revisions' changes are undone too
-    assert legacy["reward_scales"] == {"object_speed": 0.0}
+    # revisions 3 and 4 each restore a scale: merged, not the newer replacing the older
+    assert legacy["reward_scales"] == {"object_speed": 0.0, "climb": 0.0}
+    assert legacy["lift_ramp"] == 0.0
     env = make_env(old)
     assert env.config.sim_dt == 0.02 and env.config.episode_length == 200
     assert tuple(env.config.pad_solimp) == (0.9, 0.95, 0.001, 0.5, 2.0)
     assert env.config.grasp_radius == 0.05
+    assert env.config.reward_scales.object_speed == 0.0 and env.config.reward_scales.climb == 0.0
+    assert env.config.reward_scales.lift == 4.0 and env.config.lift_ramp == 0.0
     current = make_env(fresh)
     assert current.config.sim_dt == 0.01 and current.config.episode_length == 250
-    assert envs.legacy_overrides("franka_pick", 4) == {}
-    with pytest.raises(envs.EnvConfigError, match="revisions 1..4"):
-        envs.legacy_overrides("franka_pick", 5)
+    assert current.config.lift_ramp == 0.015 and current.config.reward_scales.climb == 16.0
+    assert envs.legacy_overrides("franka_pick", 5) == {}
+    with pytest.raises(envs.EnvConfigError, match="revisions 1..5"):
+        envs.legacy_overrides("franka_pick", 6)
 
 
 def test_current_env_revision_is_every_env_s_revision():

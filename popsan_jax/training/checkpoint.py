@@ -38,6 +38,7 @@ import orbax.checkpoint as ocp
 from brax.training import types as brax_types
 from brax.training.agents.ppo import networks as ppo_networks
 
+import envs
 from popsan_jax.config import RunConfig
 from popsan_jax.errors import CheckpointError, ConfigError
 from popsan_jax.training.checkpoint_index import (
@@ -256,7 +257,8 @@ def load_run(
     if env_overrides:
         if environment is not None:
             raise ConfigError("env overrides apply to the run's own env, not a custom one")
-        config = config.replace(env_overrides={**config.env_overrides, **env_overrides})
+        merged = envs.merge_overrides(config.env_overrides, env_overrides)
+        config = config.replace(env_overrides=merged)
         environment = make_env(config)  # an unknown key is the caller's ConfigError
     try:
         env = environment if environment is not None else make_env(config)

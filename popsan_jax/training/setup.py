@@ -31,7 +31,8 @@ def make_env(config: RunConfig) -> Any:
     ConfigError."""
     try:
         legacy = envs.legacy_overrides(config.env, config.env_revision)
-        return envs.get_environment(config.env, **{**legacy, **dict(config.env_overrides)})
+        overrides = envs.merge_overrides(legacy, config.env_overrides)
+        return envs.get_environment(config.env, **overrides)
     except envs.EnvConfigError as e:
         raise ConfigError(str(e)) from e
 

@@ -21,6 +21,7 @@ from typing import Any
 
 import jax
 
+import envs
 from popsan_jax import distributed
 from popsan_jax.config import RunConfig
 from popsan_jax.training.checkpoint_index import CONFIG, WARMUP
@@ -30,11 +31,8 @@ from popsan_jax.training.run_log import METRICS
 
 def warmup_config(config: RunConfig) -> RunConfig:
     """The config of ``config``'s warm-up stage (a run without a warm-up of its own)."""
-    env_overrides = dict(config.warmup_env_overrides)
-    for key, value in config.env_overrides.items():  # the user's overrides win, key by key
-        if isinstance(value, dict) and isinstance(env_overrides.get(key), dict):
-            value = {**env_overrides[key], **value}
-        env_overrides[key] = value
+    # the user's overrides win, key by key
+    env_overrides = envs.merge_overrides(config.warmup_env_overrides, config.env_overrides)
     return config.replace(
         env_overrides=env_overrides,
         total_env_steps=config.warmup_env_steps,

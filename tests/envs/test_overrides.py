@@ -10,7 +10,7 @@ import pytest
 
 from envs import franka_pick, franka_reach
 from envs.errors import EnvConfigError
-from envs.panda import apply_overrides
+from envs.panda import apply_overrides, merge_overrides
 
 REACH = franka_reach.default_config()
 PICK = franka_pick.default_config()
@@ -46,3 +46,24 @@ def test_good_overrides_keep_the_default_types():
     assert isinstance(out.episode_length, int)
     pick = apply_overrides(PICK, {"pad_solimp": [0.9, 0.95, 0.001, 0.5, 2], "sim_dt": 0.02}, "p")
     assert pick.pad_solimp == (0.9, 0.95, 0.001, 0.5, 2.0) and pick.sim_dt == 0.02
+
+
+def test_merge_overrides_later_layers_win_key_by_key():
+    # A revision's legacy scales, the warm-up's and the user's: each layer keeps the scales the
+    # others set unless it sets the same one; plain keys are replaced; inputs are not mutated.
+    legacy = {"reward_scales": {"object_speed": 0.0, "climb": 0.0}, "lift_ramp": 0.0}
+    user = {"reward_scales": {"climb": 8.0, "lift": 2.0}, "lift_ramp": 0.01, "sim_dt": 0.02}
+    merged = merge_overrides(legacy, user)
+    assert merged == {
+        "reward_scales": {"object_speed": 0.0, "climb": 8.0, "lift": 2.0},
+        "lift_ramp": 0.01,
+        "sim_dt": 0.02,
+    }
+    assert legacy["reward_scales"] == {"object_speed": 0.0, "climb": 0.0}
+    assert merge_overrides() == {} and merge_overrides(user) == user
+    # a plain value replaces a mapping and the other way round (apply_overrides judges them)
+    assert merge_overrides({"reward_scales": {"lift": 1.0}}, {"reward_scales": 3}) == {
+        "reward_scales": 3
+    }
+    merged = merge_overrides({"lift_ramp": 1}, {"lift_ramp": {"a": 1}})
+    assert merged == {"lift_ramp": {"a": 1}}
