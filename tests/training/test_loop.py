@@ -32,6 +32,8 @@ from popsan_jax.training.setup import build_networks, make_optimizer
 
 ROOT = Path(__file__).resolve().parents[2]
 STEPS = 640  # env steps per iteration of tiny_config()
+# Hang guards for child processes, not timings: a loaded 2-core box can take minutes to compile.
+HANG_GUARD_S = 600
 
 
 def _equal_trees(a, b) -> bool:
@@ -275,7 +277,7 @@ def test_sigkill_mid_run_leaves_a_loadable_last_checkpoint(tmp_path):
     # 200 iterations with a checkpoint after each: the kill lands while training/saving.
     proc = _child(run_dir, total=200 * STEPS, evals=200)
     index_path = run_dir / "checkpoints" / "index.json"
-    deadline = time.monotonic() + 120
+    deadline = time.monotonic() + HANG_GUARD_S
     while time.monotonic() < deadline and proc.poll() is None:
         if index_path.exists() and json.loads(index_path.read_text())["last"] >= 3 * STEPS:
             break
@@ -300,7 +302,7 @@ def test_sigkill_mid_run_leaves_a_loadable_last_checkpoint(tmp_path):
 def test_two_devices_shard_envs(tmp_path):
     run_dir = tmp_path / "two"
     proc = _child(run_dir, total=2 * STEPS, evals=1, devices=2)
-    out, err = proc.communicate(timeout=240)
+    out, err = proc.communicate(timeout=HANG_GUARD_S)
     assert proc.returncode == 0, err[-3000:]
     assert "2 cpu device(s)" in err
     assert out.split()[-1] == "finished"
