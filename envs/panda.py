@@ -70,9 +70,9 @@ def base_config(**fields: Any) -> ml_collections.ConfigDict:
 
 
 def merge_overrides(*layers: Mapping[str, Any]) -> dict[str, Any]:
-    """Config overrides of several sources in one dict, later layers winning key by key; nested
-    dicts (``reward_scales``) are merged the same way, so a layer that sets one scale keeps the
-    scales that earlier layers set."""
+    """Config overrides of several sources in one dict, later layers winning key by key; a dict
+    value (``reward_scales``, the configs' only nested level) is merged one level deep, so a layer
+    that sets one scale keeps the scales that earlier layers set."""
     merged: dict[str, Any] = {}
     for layer in layers:
         for key, value in layer.items():
