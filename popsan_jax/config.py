@@ -108,6 +108,13 @@ class RunConfig:
     init_checkpoint: str = _flag(
         "best", "which checkpoint of --init-from: best | last | env-step count"
     )
+    # Critic warm-up: a started critic (init_from, or the warm-up stage's) learnt another
+    # reward, and PPO's first updates on its advantages can undo the policy it starts from.
+    # The actor's learning rate is 0 for the first critic_warmup_env_steps (whole iterations)
+    # while the critic learns this reward; actor_lr's schedule then runs over the rest.
+    critic_warmup_env_steps: int = _flag(
+        0, "env steps at the start in which only the critic learns (actor lr 0)"
+    )
     # Warm-up stage (popsan_jax/training/stages.py): first warmup_env_steps on the env with
     # warmup_env_overrides (a gentler variant of the task) at warmup_actor_lr, in RUN/warmup/;
     # then this config's own stage starts from its last checkpoint (fresh optimiser).
@@ -138,6 +145,11 @@ class RunConfig:
     @property
     def num_iterations(self) -> int:
         return max(1, math.ceil(self.total_env_steps / self.env_steps_per_iteration))
+
+    @property
+    def critic_warmup_iterations(self) -> int:
+        """Iterations at the start in which the actor does not learn."""
+        return math.ceil(self.critic_warmup_env_steps / self.env_steps_per_iteration)
 
     @property
     def eval_interval(self) -> int:
@@ -175,6 +187,12 @@ class RunConfig:
             raise ConfigError(f"warmup_env_steps must be >= 0, got {self.warmup_env_steps}")
         if self.warmup_env_steps and (self.warmup_num_evals < 1 or not self.warmup_actor_lr > 0):
             raise ConfigError("a warm-up needs warmup_num_evals >= 1 and warmup_actor_lr > 0")
+        if self.critic_warmup_env_steps < 0 or self.critic_warmup_iterations >= self.num_iterations:
+            raise ConfigError(
+                f"critic_warmup_env_steps must be >= 0 and leave the actor at least one "
+                f"iteration: got {self.critic_warmup_env_steps} of {self.total_env_steps} "
+                f"env steps ({self.env_steps_per_iteration} per iteration)"
+            )
         if self.episode_length is not None and self.episode_length < 1:
             raise ConfigError(f"episode_length must be >= 1, got {self.episode_length}")
         for name in ("actor_lr", "critic_lr", "obs_clip"):

@@ -88,13 +88,22 @@ def make_spikes_fn(config: RunConfig, action_size: int) -> SpikesFn:
 
 def make_optimizer(config: RunConfig) -> optax.GradientTransformation:
     """Adam with separate actor / critic learning rates (the PopSAN paper's 1e-5 / 1e-4 split),
-    optional cosine decay over the whole run, and optional global grad-norm clipping."""
-    total_updates = config.num_iterations * config.num_updates_per_batch * config.num_minibatches
+    optional cosine decay over the whole run, and optional global grad-norm clipping.
 
-    def lr(value: float) -> optax.ScalarOrSchedule:
+    With a critic warm-up the actor's rate is 0 for its first updates and its schedule (the
+    cosine decay included) runs over the remaining ones."""
+    per_iteration = config.num_updates_per_batch * config.num_minibatches
+    total_updates = config.num_iterations * per_iteration
+    frozen = config.critic_warmup_iterations * per_iteration
+
+    def lr(value: float, skip: int = 0) -> optax.ScalarOrSchedule:
+        rate: optax.ScalarOrSchedule = value
         if config.lr_schedule == "cosine":
-            return optax.cosine_decay_schedule(value, decay_steps=total_updates)
-        return value
+            rate = optax.cosine_decay_schedule(value, decay_steps=total_updates - skip)
+        if not skip:
+            return rate
+        after = rate if callable(rate) else optax.constant_schedule(rate)
+        return optax.join_schedules([optax.constant_schedule(0.0), after], [skip])
 
     def labels(params: ppo_losses.PPONetworkParams) -> ppo_losses.PPONetworkParams:
         return ppo_losses.PPONetworkParams(
@@ -103,7 +112,10 @@ def make_optimizer(config: RunConfig) -> optax.GradientTransformation:
         )
 
     split = optax.multi_transform(
-        {"actor": optax.adam(lr(config.actor_lr)), "critic": optax.adam(lr(config.critic_lr))},
+        {
+            "actor": optax.adam(lr(config.actor_lr, frozen)),
+            "critic": optax.adam(lr(config.critic_lr)),
+        },
         labels,
     )
     if config.max_grad_norm is None:

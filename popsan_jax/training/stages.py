@@ -40,6 +40,7 @@ def warmup_config(config: RunConfig) -> RunConfig:
         num_evals=config.warmup_num_evals,
         warmup_env_steps=0,
         warmup_env_overrides={},
+        critic_warmup_env_steps=0,  # the warm-up stage starts from scratch
     )
 
 

@@ -110,3 +110,31 @@ def test_prime_normalizer_holds_the_statistics_of_a_plain_rollout():
     np.testing.assert_allclose(primed.mean, seen.mean(axis=(0, 1)), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(primed.std, seen.std(axis=(0, 1)), rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(end.obs, state.obs, rtol=1e-6, atol=1e-7)
+
+
+def test_critic_warmup_holds_the_actor_for_whole_iterations():
+    """With a critic warm-up of one iteration, the first iteration moves the critic and not
+    the actor (not even its log-std); the second moves both."""
+    config = tiny_config(critic_warmup_env_steps=640)
+    env = PointPick()
+    wrapped = brax_training.wrap(env, episode_length=env.config.episode_length)
+    nets = build_networks(config, env.observation_size, env.action_size)
+    optimizer = make_optimizer(config)
+    state = iteration.init_training_state(
+        config, nets, optimizer, env.observation_size, jax.random.PRNGKey(0)
+    )
+    diagnostics = make_diagnostics_fn(config, nets, env.action_size)
+    step = jax.jit(
+        iteration.make_iteration_fn(config, wrapped, nets, optimizer, diagnostics, axis_name=None)
+    )
+    env_state = jax.jit(wrapped.reset)(jax.random.split(jax.random.PRNGKey(1), config.num_envs))
+    first, env_state, _ = step(state, env_state, jax.random.PRNGKey(2))
+    second, _, _ = step(first, env_state, jax.random.PRNGKey(3))
+
+    def same(a, b) -> bool:
+        pairs = zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)
+        return all(np.array_equal(x, y) for x, y in pairs)
+
+    assert same(state.params.policy, first.params.policy)
+    assert not same(state.params.value, first.params.value)
+    assert not same(first.params.policy, second.params.policy)

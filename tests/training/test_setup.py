@@ -1,5 +1,5 @@
 """The run's building blocks: env errors translated, the one observation preprocessing, the
-PopSAN at another T, and the optimiser's actor / critic split."""
+PopSAN at another T, and the optimiser's actor / critic split and critic warm-up."""
 
 from __future__ import annotations
 
@@ -57,3 +57,44 @@ def test_optimizer_uses_separate_actor_and_critic_learning_rates():
     updates, _ = opt.update(grads, opt.init(params), params)
     np.testing.assert_allclose(updates.policy["w"], [-1e-5, 1e-5, -1e-5], rtol=1e-3)
     np.testing.assert_allclose(updates.value["w"], [1e-4, -1e-4], rtol=1e-3)
+
+
+def test_critic_warmup_freezes_the_actor_then_runs_its_schedule_over_the_rest():
+    # 640 env steps and 4 x 2 = 8 updates per iteration, 4 iterations = 32 updates; a critic
+    # warm-up of 641 env steps rounds up to 2 whole iterations = 16 updates with the actor still.
+    c = RunConfig(
+        num_envs=16, batch_size=16, num_minibatches=4, unroll_length=10, num_updates_per_batch=2,
+        total_env_steps=4 * 640, critic_warmup_env_steps=641, lr_schedule="cosine",
+        actor_lr=1e-3, critic_lr=1e-2, max_grad_norm=None,
+    )  # fmt: skip
+    assert c.critic_warmup_iterations == 2
+    # A constant gradient makes each Adam step -lr(t) * sign(grad) exactly (bias-corrected
+    # m / sqrt(v) = sign), so the steps trace each group's learning rate update by update.
+    params = ppo_losses.PPONetworkParams(policy={"w": jnp.ones(2)}, value={"w": jnp.ones(1)})
+    grads = ppo_losses.PPONetworkParams(
+        policy={"w": jnp.array([2.0, -0.5])}, value={"w": -jnp.ones(1)}
+    )
+    opt = make_optimizer(c)
+    state = opt.init(params)
+    actor, critic = [], []
+    for _ in range(32):
+        updates, state = opt.update(grads, state, params)
+        actor.append(np.asarray(updates.policy["w"]) / -np.sign([2.0, -0.5]))
+        critic.append(float(updates.value["w"][0]))
+
+    def cosine(value: float, step: int, steps: int) -> float:
+        return value * 0.5 * (1 + np.cos(np.pi * step / steps))
+
+    assert all(np.all(a == 0.0) for a in actor[:16])  # exactly still for 2 iterations
+    want_actor = [cosine(1e-3, t, 16) for t in range(16)]  # then the full cosine over 16
+    np.testing.assert_allclose([a[0] for a in actor[16:]], want_actor, rtol=1e-4)
+    np.testing.assert_allclose([a[1] for a in actor[16:]], want_actor, rtol=1e-4)
+    np.testing.assert_allclose(critic, [cosine(1e-2, t, 32) for t in range(32)], rtol=1e-4)
+
+
+def test_critic_warmup_must_leave_the_actor_an_iteration():
+    c = RunConfig(num_envs=16, batch_size=16, num_minibatches=4, total_env_steps=4 * 640)
+    c.replace(critic_warmup_env_steps=3 * 640).validate()
+    for bad in (3 * 640 + 1, 4 * 640, -1):
+        with pytest.raises(ConfigError, match="critic_warmup_env_steps must be >= 0 and leave"):
+            c.replace(critic_warmup_env_steps=bad).validate()

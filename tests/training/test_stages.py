@@ -33,6 +33,7 @@ def test_warmup_config_merges_overrides_and_drops_its_own_warm_up():
         actor_lr=3e-4,
         num_evals=8,
         seed=4,
+        critic_warmup_env_steps=1000,
     )
     warm = warmup_config(config)
     assert warm.env_overrides == {
@@ -42,6 +43,7 @@ def test_warmup_config_merges_overrides_and_drops_its_own_warm_up():
     }
     assert (warm.total_env_steps, warm.actor_lr, warm.num_evals) == (6000, 1e-3, 3)
     assert warm.warmup_env_steps == 0 and warm.warmup_env_overrides == {}
+    assert warm.critic_warmup_env_steps == 0  # the critic warm-up is the run's own stage's
     assert warm.seed == 4 and warm.critic_lr == config.critic_lr
 
 
