@@ -23,7 +23,14 @@ import os
 import sys
 from pathlib import Path
 
-from popsan_jax.cli import cluster_flags, given_flags, run_choices, stop_on_signals, train_parser
+from popsan_jax.cli import (
+    cluster_flags,
+    given_flags,
+    raise_if_stop_requested,
+    run_choices,
+    stop_on_signals,
+    train_parser,
+)
 from popsan_jax.errors import UserError
 
 
@@ -52,7 +59,11 @@ def main(argv: list[str] | None = None) -> int:
                 jax.default_backend(), *given_flags(args), **run_choices(args)
             )
             result = train_run(
-                config, run_dir, resume=bool(args.resume), progress=not args.no_progress
+                config,
+                run_dir,
+                resume=bool(args.resume),
+                progress=not args.no_progress,
+                on_iteration=raise_if_stop_requested,
             )
         except UserError as e:
             return _stop(cluster, 2, f"error: {e}")

@@ -218,15 +218,37 @@ def eval_parser(description: str | None = None) -> argparse.ArgumentParser:
     return p
 
 
+_stop = types.SimpleNamespace(requested=False)
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    _stop.requested = True
+    raise KeyboardInterrupt
+
+
+def raise_if_stop_requested(*_: Any) -> None:
+    """Raise KeyboardInterrupt if a signal asked :func:`stop_on_signals` to stop.
+
+    A signal's KeyboardInterrupt is raised wherever Python code runs at that moment; inside a
+    garbage-collector callback (JAX registers one, and a compile collects often) Python prints
+    it and drops it, and the run would go on. Called after every training iteration
+    (train.py's ``on_iteration``), this raises it again there.
+    """
+    if _stop.requested:
+        raise KeyboardInterrupt
+
+
 @contextlib.contextmanager
 def stop_on_signals() -> Iterator[None]:
     """SIGINT and SIGTERM raise KeyboardInterrupt inside, as Ctrl-C does; handlers restored after.
 
     A job started with ``&`` by a non-interactive shell has SIGINT ignored, and schedulers stop
-    jobs with SIGTERM: both should end a run as Ctrl-C does (last checkpoint kept).
+    jobs with SIGTERM: both should end a run as Ctrl-C does (last checkpoint kept). A stop that
+    was dropped on its way is raised again by :func:`raise_if_stop_requested`.
     """
-    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
-    previous_term = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    _stop.requested = False
+    previous = signal.signal(signal.SIGINT, _interrupt)
+    previous_term = signal.signal(signal.SIGTERM, _interrupt)
     try:
         yield
     finally:
