@@ -14,6 +14,7 @@ import dataclasses
 import json
 import re
 import signal
+import sys
 import types
 import typing
 from collections.abc import Callable, Iterator
@@ -230,8 +231,9 @@ def raise_if_stop_requested(*_: Any) -> None:
     """Raise KeyboardInterrupt if a signal asked :func:`stop_on_signals` to stop.
 
     A signal's KeyboardInterrupt is raised wherever Python code runs at that moment; inside a
-    garbage-collector callback (JAX registers one, and a compile collects often) Python prints
-    it and drops it, and the run would go on. Called after every training iteration
+    garbage-collector callback (JAX registers one, and a compile collects often) Python reports
+    it to ``sys.unraisablehook`` and drops it, and the run would go on (stop_on_signals keeps
+    that report quiet). Called after every training iteration
     (train.py's ``on_iteration``), this raises it again there.
     """
     if _stop.requested:
@@ -249,8 +251,16 @@ def stop_on_signals() -> Iterator[None]:
     _stop.requested = False
     previous = signal.signal(signal.SIGINT, _interrupt)
     previous_term = signal.signal(signal.SIGTERM, _interrupt)
+    previous_hook = sys.unraisablehook
+
+    def unraisable(report: Any) -> None:
+        if not isinstance(report.exc_value, KeyboardInterrupt):  # that one is raised again
+            previous_hook(report)
+
+    sys.unraisablehook = unraisable
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
         signal.signal(signal.SIGTERM, previous_term)
+        sys.unraisablehook = previous_hook

@@ -90,8 +90,7 @@ def test_sigint_even_if_ignored_and_sigterm_stop_like_ctrl_c(signum):
         signal.signal(signal.SIGINT, ignored)
 
 
-@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
-def test_a_stop_dropped_in_a_gc_callback_is_raised_at_the_next_iteration():
+def test_a_stop_dropped_in_a_gc_callback_is_raised_at_the_next_iteration(monkeypatch):
     """Python drops an exception raised inside a garbage-collector callback (JAX registers
     one): a SIGINT handled there would be lost. train.py's per-iteration hook raises it again."""
     armed = [True]
@@ -103,6 +102,8 @@ def test_a_stop_dropped_in_a_gc_callback_is_raised_at_the_next_iteration():
             for _ in range(10_000):  # the handler runs at a bytecode boundary: in here
                 pass
 
+    reported = []
+    monkeypatch.setattr(sys, "unraisablehook", lambda report: reported.append(report))
     gc.callbacks.append(callback)
     try:
         with cli.stop_on_signals():
@@ -110,8 +111,11 @@ def test_a_stop_dropped_in_a_gc_callback_is_raised_at_the_next_iteration():
             assert not armed  # the signal was sent, and this line still runs
             with pytest.raises(KeyboardInterrupt):
                 cli.raise_if_stop_requested()
+            gc.callbacks.append(lambda phase, info: phase == "start" and 1 / 0)  # others: reported
+            gc.collect()
     finally:
-        gc.callbacks.remove(callback)
+        del gc.callbacks[-2:]
+    assert [type(r.exc_value) for r in reported] == [ZeroDivisionError]  # no traceback printed
     with cli.stop_on_signals():
         cli.raise_if_stop_requested()  # a new run starts without a stop
 
