@@ -17,9 +17,8 @@ from popsan_jax.training.diagnostics import make_diagnostics_fn
 from popsan_jax.training.setup import build_networks, make_optimizer
 
 
-@pytest.fixture(scope="module")
-def one_iteration():
-    config = tiny_config(sop_cost=0.5)  # 16 envs, 4 minibatches of 16 x 10 steps, 2 epochs
+def _start(config):
+    """The toy env's jitted iteration for ``config``, its initial training state and envs."""
     env = PointPick()
     wrapped = brax_training.wrap(env, episode_length=env.config.episode_length)
     nets = build_networks(config, env.observation_size, env.action_size)
@@ -32,6 +31,13 @@ def one_iteration():
         iteration.make_iteration_fn(config, wrapped, nets, optimizer, diagnostics, axis_name=None)
     )
     env_state = jax.jit(wrapped.reset)(jax.random.split(jax.random.PRNGKey(1), config.num_envs))
+    return step, state, env_state
+
+
+@pytest.fixture(scope="module")
+def one_iteration():
+    config = tiny_config(sop_cost=0.5)  # 16 envs, 4 minibatches of 16 x 10 steps, 2 epochs
+    step, state, env_state = _start(config)
     new_state, new_env_state, metrics = step(state, env_state, jax.random.PRNGKey(2))
     return config, state, new_state, new_env_state, jax.device_get(metrics)
 
@@ -115,19 +121,7 @@ def test_prime_normalizer_holds_the_statistics_of_a_plain_rollout():
 def test_critic_warmup_holds_the_actor_for_whole_iterations():
     """With a critic warm-up of one iteration, the first iteration moves the critic and not
     the actor (not even its log-std); the second moves both."""
-    config = tiny_config(critic_warmup_env_steps=640)
-    env = PointPick()
-    wrapped = brax_training.wrap(env, episode_length=env.config.episode_length)
-    nets = build_networks(config, env.observation_size, env.action_size)
-    optimizer = make_optimizer(config)
-    state = iteration.init_training_state(
-        config, nets, optimizer, env.observation_size, jax.random.PRNGKey(0)
-    )
-    diagnostics = make_diagnostics_fn(config, nets, env.action_size)
-    step = jax.jit(
-        iteration.make_iteration_fn(config, wrapped, nets, optimizer, diagnostics, axis_name=None)
-    )
-    env_state = jax.jit(wrapped.reset)(jax.random.split(jax.random.PRNGKey(1), config.num_envs))
+    step, state, env_state = _start(tiny_config(critic_warmup_env_steps=640))
     first, env_state, _ = step(state, env_state, jax.random.PRNGKey(2))
     second, _, _ = step(first, env_state, jax.random.PRNGKey(3))
 
