@@ -221,7 +221,7 @@ def test_deferred_signals_hold_an_interrupt_until_the_write_is_done():
     done = []
     with stop_on_signals(), pytest.raises(KeyboardInterrupt):
         with deferred_signals():
-            os.kill(os.getpid(), signal.SIGTERM)
+            signal.raise_signal(signal.SIGTERM)  # to this thread, before it returns
             time.sleep(0.05)
             done.append("write complete")
     assert done == ["write complete"]
