@@ -28,11 +28,14 @@ from __future__ import annotations
 
 import sys
 
-from popsan_jax.cli import eval_parser, stop_on_signals
+from popsan_jax.cli import eval_parser, raise_if_stop_requested, stop_on_signals
 from popsan_jax.errors import UserError
 
 
 def say(text: str) -> None:
+    """Print one progress line; a Ctrl-C that Python dropped (cli.raise_if_stop_requested)
+    stops the evaluation here, at its next line, instead of needing a second one."""
+    raise_if_stop_requested()
     print(text, flush=True)
 
 

@@ -14,12 +14,14 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from _run_fixtures import load_script
 
 from popsan_jax import cli
 from popsan_jax.config import RunConfig
 from popsan_jax.training import run
 
 ROOT = Path(__file__).resolve().parent.parent
+eval_cli = load_script("eval")
 
 # train.py's config flags before they were derived from RunConfig (the hand-written table),
 # and the warm-up, priming and critic warm-up flags since.
@@ -91,7 +93,8 @@ def test_sigint_even_if_ignored_and_sigterm_stop_like_ctrl_c(signum):
 
 def test_a_stop_dropped_in_a_gc_callback_is_raised_at_the_next_iteration(monkeypatch):
     """Python drops an exception raised inside a garbage-collector callback (JAX registers
-    one): a SIGINT handled there would be lost. train.py's per-iteration hook raises it again."""
+    one): a SIGINT handled there would be lost. train.py's per-iteration hook and eval.py's
+    progress lines raise it again."""
     fired = []
 
     def once(action):  # a gc callback that acts at the start of one collection, then never
@@ -120,6 +123,8 @@ def test_a_stop_dropped_in_a_gc_callback_is_raised_at_the_next_iteration(monkeyp
             assert fired == [interrupt]  # the signal was sent, and this line still runs
             with pytest.raises(KeyboardInterrupt):
                 cli.raise_if_stop_requested()
+            with pytest.raises(KeyboardInterrupt):  # eval.py stops at its next progress line
+                eval_cli.say("energy sweep")
             gc.callbacks.append(callbacks[1])
             gc.collect()
         finally:
