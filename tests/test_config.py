@@ -11,9 +11,11 @@ from pathlib import Path
 import pytest
 
 import envs
+from popsan_jax.cli import given_flags, run_choices, train_parser
 from popsan_jax.config import CURRENT_ENV_REVISION, POPSAN_DEFAULTS, RunConfig
 from popsan_jax.errors import ConfigError
 from popsan_jax.recipes import PICK_RECIPE, PRESETS, resolve_config
+from popsan_jax.training.run import prepare_run
 from popsan_jax.training.setup import make_env
 from popsan_jax.training.stages import warmup_config
 
@@ -239,3 +241,20 @@ def test_config_without_env_revision_rebuilds_the_env_it_was_trained_with(tmp_pa
 
 def test_current_env_revision_is_every_env_s_revision():
     assert envs.FrankaPick.revision == envs.FrankaReach.revision == CURRENT_ENV_REVISION
+
+
+def test_documented_mlp_fine_tune_is_the_committed_three_seeds(tmp_path, monkeypatch):
+    # docs/results.md's one-command MLP recipe ("One command, three seeds"), parsed as train.py
+    # parses it, must resolve to the three committed configs; `--seed K` changes only the seed.
+    monkeypatch.chdir(ROOT)  # --init-from names the committed reference run relative to it
+    for seed in (0, 1, 2):
+        name = f"mlp-critwu5-lr1e4-s{seed}"
+        argv = ["--env", "franka_pick", "--actor", "mlp", "--name", name, "--seed", str(seed)]
+        argv += ["--warmup-env-steps", "0", "--init-from", "docs/reference/pick-mlp-s0"]
+        argv += ["--init-checkpoint", "last", "--critic-warmup-env-steps", "491520"]
+        argv += ["--total-env-steps", "2500000", "--actor-lr", "1e-4", "--num-evals", "10"]
+        args = train_parser().parse_args([*argv, "--runs-dir", str(tmp_path)])
+        config, run_dir = prepare_run("cpu", *given_flags(args), **run_choices(args))
+        committed = RunConfig.from_json(ROOT / f"docs/results/climb/{name}/config.json")
+        assert config == committed and run_dir == tmp_path / name
+        assert committed.critic_warmup_env_steps == 491520 and committed.seed == seed
