@@ -264,3 +264,4 @@ def stop_on_signals() -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
         signal.signal(signal.SIGTERM, previous_term)
         sys.unraisablehook = previous_hook
+        _stop.requested = False  # a stop belongs to this block: none is raised after it

@@ -132,6 +132,7 @@ def test_a_stop_dropped_in_a_gc_callback_is_raised_at_the_next_iteration(monkeyp
                 if callback in gc.callbacks:
                     gc.callbacks.remove(callback)
     assert [type(r.exc_value) for r in reported] == [ZeroDivisionError]  # no traceback printed
+    cli.raise_if_stop_requested()  # the stop ended with its block
     with cli.stop_on_signals():
         cli.raise_if_stop_requested()  # a new run starts without a stop
 
