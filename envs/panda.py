@@ -285,8 +285,11 @@ class PandaEnv(Env):
         action = jnp.clip(action, -1.0, 1.0)
         ctrl = jnp.clip(data.ctrl + self._step_scale * action, self._ctrl_lower, self._upper)
         data = data.replace(ctrl=ctrl)
-        for _ in range(self._n_substeps):
-            data = mjx.step(self._mjx_model, data)
+        # A loop, not a Python for: the substeps then trace and compile once, not once each
+        # (franka_pick's two substeps doubled its compile; docs/benchmarks.md).
+        data = jax.lax.fori_loop(
+            0, self._n_substeps, lambda _, d: mjx.step(self._mjx_model, d), data
+        )
         # mjx.step leaves body/site positions at the state BEFORE integration (one 20 ms control
         # step old here); refresh them so tips, object and joints in obs/reward agree.
         data = mjx.kinematics(self._mjx_model, data)
