@@ -79,13 +79,25 @@ def overrides_tag(overrides: dict[str, object]) -> str:
     return re.sub(r"[^A-Za-z0-9_.=+,-]", "", text)
 
 
+def boolean(text: str) -> bool:
+    """``true`` / ``false`` (also ``1`` / ``0``, ``yes`` / ``no``) -> bool."""
+    value = {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}
+    try:
+        return value[text.strip().lower()]
+    except KeyError:
+        raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}") from None
+
+
 def _flag_type(annotation: Any) -> Callable[[str], Any]:
-    """The argparse type of a RunConfig field: ``X | None`` is X, tuples of ints are sizes."""
+    """The argparse type of a RunConfig field: ``X | None`` is X, tuples of ints are sizes,
+    bools read true / false (``bool('false')`` would be True)."""
     args = [a for a in typing.get_args(annotation) if a is not type(None)]
     if isinstance(annotation, types.UnionType) or typing.get_origin(annotation) is typing.Union:
         annotation = args[0]
     if typing.get_origin(annotation) is tuple:
         return sizes
+    if annotation is bool:
+        return boolean
     return annotation
 
 

@@ -115,6 +115,13 @@ class RunConfig:
     critic_warmup_env_steps: int = _flag(
         0, "env steps at the start in which only the critic learns (actor lr 0)"
     )
+    # A frozen normaliser keeps the observation statistics the run started from (init_from's,
+    # or the warm-up stage's for the run's own stage). A PopSAN's encoder maps a shifted
+    # normalised input to other spikes, so a moving normaliser moves its policy without any
+    # actor update (docs/design.md, "A frozen normaliser").
+    freeze_normalizer: bool = _flag(
+        False, "keep the started observation normaliser fixed: true | false (needs a warm start)"
+    )
     # Warm-up stage (popsan_jax/training/stages.py): first warmup_env_steps on the env with
     # warmup_env_overrides (a gentler variant of the task) at warmup_actor_lr, in RUN/warmup/;
     # then this config's own stage starts from its last checkpoint (fresh optimiser).
@@ -192,6 +199,10 @@ class RunConfig:
                 f"critic_warmup_env_steps must be >= 0 and leave the actor at least one "
                 f"iteration: got {self.critic_warmup_env_steps} of {self.total_env_steps} "
                 f"env steps ({self.env_steps_per_iteration} per iteration)"
+            )
+        if self.freeze_normalizer and not (self.init_from or self.warmup_env_steps):
+            raise ConfigError(
+                "freeze_normalizer needs a started normaliser: --init-from or a warm-up stage"
             )
         if self.episode_length is not None and self.episode_length < 1:
             raise ConfigError(f"episode_length must be >= 1, got {self.episode_length}")

@@ -237,9 +237,11 @@ def make_iteration_fn(
         # [U, L, E, ...] -> [U * E, L, ...]: one sequence per row, as compute_ppo_loss expects.
         data = jax.tree.map(lambda x: jnp.swapaxes(x, 1, 2), data)
         data = jax.tree.map(lambda x: jnp.reshape(x, (-1,) + x.shape[2:]), data)
-        normalizer = running_statistics.update(
-            state.normalizer_params, data.observation, pmap_axis_name=axis_name
-        )
+        normalizer = state.normalizer_params
+        if not config.freeze_normalizer:
+            normalizer = running_statistics.update(
+                normalizer, data.observation, pmap_axis_name=axis_name
+            )
         (opt_state, params, _), metrics = jax.lax.scan(
             functools.partial(epoch, data=data, normalizer_params=normalizer),
             (state.opt_state, state.params, key_sgd),

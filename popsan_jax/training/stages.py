@@ -41,6 +41,7 @@ def warmup_config(config: RunConfig) -> RunConfig:
         warmup_env_steps=0,
         warmup_env_overrides={},
         critic_warmup_env_steps=0,  # the warm-up stage starts from scratch
+        freeze_normalizer=False,
     )
 
 
