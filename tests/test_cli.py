@@ -24,13 +24,13 @@ ROOT = Path(__file__).resolve().parent.parent
 eval_cli = load_script("eval")
 
 # train.py's config flags before they were derived from RunConfig (the hand-written table),
-# and the warm-up, priming and critic warm-up flags since.
+# and the warm-up, priming, critic warm-up and frozen-normaliser flags since.
 HAND_TABLE = """env actor seed num_envs total_env_steps episode_length unroll_length batch_size
 num_minibatches num_updates_per_batch actor_lr critic_lr lr_schedule max_grad_norm entropy_cost
 discounting gae_lambda clipping_epsilon reward_scaling obs_clip init_log_std critic_hidden_sizes
 sop_cost sop_budget init_from init_checkpoint num_evals num_eval_envs keep_every_n_evals
 warmup_env_steps warmup_actor_lr warmup_num_evals prime_normalizer_episodes
-critic_warmup_env_steps""".split()
+critic_warmup_env_steps freeze_normalizer""".split()
 
 
 def test_config_flags_are_the_run_config_fields_with_their_types():
@@ -51,9 +51,15 @@ def test_config_flags_are_the_run_config_fields_with_their_types():
     config = RunConfig(**given)
     assert config.critic_hidden_sizes == (64, 32) and config.episode_length == 50
     assert cli.given_flags(cli.train_parser().parse_args([])) == ({}, {})
+    # A bool field reads its words (argparse's bool('false') would be True).
+    for word, value in (("false", False), ("true", True), ("No", False), ("1", True)):
+        args = cli.train_parser().parse_args(["--freeze-normalizer", word])
+        assert cli.given_flags(args)[0] == {"freeze_normalizer": value}
 
 
-@pytest.mark.parametrize("argv", [["--num-envs", "many"], ["--hidden-sizes", "0,4"]])
+@pytest.mark.parametrize(
+    "argv", [["--num-envs", "many"], ["--hidden-sizes", "0,4"], ["--freeze-normalizer", "maybe"]]
+)
 def test_train_flag_type_errors_exit_2(argv, capsys):
     with pytest.raises(SystemExit) as exc:
         cli.train_parser().parse_args(argv)

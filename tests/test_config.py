@@ -193,6 +193,14 @@ def test_validate_messages():
         RunConfig(unroll_length=0).validate()
     with pytest.raises(ConfigError, match="unknown preset"):
         resolve_config("huge")
+    # A frozen normaliser needs statistics to keep: a warm start or a warm-up stage, whose own
+    # stage (from scratch) then updates its normaliser as usual.
+    with pytest.raises(ConfigError, match="freeze_normalizer needs a started normaliser"):
+        RunConfig(freeze_normalizer=True).validate()
+    chained = resolve_config(None, "cpu", dict(freeze_normalizer=True))
+    chained.validate()
+    assert not warmup_config(chained).freeze_normalizer
+    warmup_config(chained).validate()
 
 
 def test_json_round_trip_keeps_tuples(tmp_path):

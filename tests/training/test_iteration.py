@@ -130,3 +130,22 @@ def test_critic_warmup_holds_the_actor_for_whole_iterations():
     assert not any(moved(state.params.policy, first.params.policy))
     assert any(moved(state.params.value, first.params.value))
     assert any(moved(first.params.policy, second.params.policy))
+
+
+def test_frozen_normalizer_keeps_the_started_statistics_and_the_actor_learns():
+    """--freeze-normalizer: the started statistics (here from 64 random observations) are what
+    the next state carries, bit for bit, while the actor and critic still move (unfrozen, an
+    iteration adds its observations: test_counts_steps_observations_and_updates)."""
+    config = tiny_config(freeze_normalizer=True, init_from="a-run")  # init_from: validation only
+    config.validate(1)
+    step, state, env_state = _start(config)
+    seen = jax.random.normal(jax.random.PRNGKey(7), (64, PointPick().observation_size)) * 3 + 1
+    started = running_statistics.update(state.normalizer_params, seen)
+    state = state.replace(normalizer_params=started)
+    new, _, _ = step(state, env_state, jax.random.PRNGKey(2))
+
+    assert not any(moved(started, new.normalizer_params))
+    assert any(moved(state.params.policy, new.params.policy))
+    assert any(moved(state.params.value, new.params.value))
+    count = started.count
+    assert int(count.hi) * 2**32 + int(count.lo) == 64
