@@ -286,7 +286,7 @@ class PandaEnv(Env):
         ctrl = jnp.clip(data.ctrl + self._step_scale * action, self._ctrl_lower, self._upper)
         data = data.replace(ctrl=ctrl)
         # A loop, not a Python for: the substeps then trace and compile once, not once each
-        # (franka_pick's two substeps doubled its compile; docs/benchmarks.md).
+        # (franka_pick's two substeps more than doubled its compile; docs/benchmarks.md).
         data = jax.lax.fori_loop(
             0, self._n_substeps, lambda _, d: mjx.step(self._mjx_model, d), data
         )

@@ -147,5 +147,5 @@ def test_frozen_normalizer_keeps_the_started_statistics_and_the_actor_learns():
     assert not any(moved(started, new.normalizer_params))
     assert any(moved(state.params.policy, new.params.policy))
     assert any(moved(state.params.value, new.params.value))
-    count = started.count
+    count = new.normalizer_params.count  # the 64 it started with, none of the 640 collected
     assert int(count.hi) * 2**32 + int(count.lo) == 64
