@@ -89,10 +89,20 @@ def refresh_reset_states(env: Any, env_state: Any, key: jax.Array) -> Any:
     return env_state.replace(info=info)
 
 
+# WRAPPED_SCAN_BODY: on XLA:CPU a ``lax.scan`` whose body steps Brax's training-wrapped env
+# compiles about 6x slower and peaks at ~19 GB of host memory (franka_pick: ~126 s against
+# ~21 s, at any batch size or scan length) unless the body is itself ``jax.jit``-ed, as Brax's
+# ``acting.generate_unroll`` does, and closes over no traced value: the policy's parameters and
+# anything else traced ride in the carry (benchmarks/scan_body_compile.py; docs/design.md, "A
+# jitted scan body"). Hence the explicit ``params`` of the policies below.
+ParamPolicy = Callable[[Any, jax.Array, jax.Array], tuple[jax.Array, Any]]
+
+
 def stagger_episodes(
     env: Any,
     env_state: Any,
-    policy: Callable[[jax.Array, jax.Array], tuple[jax.Array, Any]],
+    policy: ParamPolicy,
+    params: Any,
     key: jax.Array,
     episode_length: int,
 ) -> Any:
@@ -107,32 +117,36 @@ def stagger_episodes(
     Args:
       env: the training-wrapped (vmapped, auto-reset) env.
       env_state: its batched state, ``E`` envs on this device, all at episode step 0.
-      policy: ``policy(obs [E, O], key) -> (action [E, A], extras)``.
+      policy: ``policy(params, obs [E, O], key) -> (action [E, A], extras)``.
+      params: the policy's parameters (a pytree; see WRAPPED_SCAN_BODY).
       key: rng for the step counts and the actions.
       episode_length: ``L``, control steps per episode.
     """
     key_counts, key_steps = jax.random.split(key)
     counts = jax.random.randint(key_counts, (env_state.obs.shape[0],), 0, episode_length)
 
+    @jax.jit  # see WRAPPED_SCAN_BODY
     def body(carry, t):
-        state, k = carry
+        state, k, params, counts = carry
         k, k_act = jax.random.split(k)
-        stepped = env.step(state, policy(state.obs, k_act)[0])
+        stepped = env.step(state, policy(params, state.obs, k_act)[0])
         keep = t < counts  # [E]: env e takes steps 0 .. n_e - 1 and then stands still
 
         def pick(new: jax.Array, old: jax.Array) -> jax.Array:
             return jnp.where(keep.reshape(keep.shape + (1,) * (new.ndim - 1)), new, old)
 
-        return (jax.tree.map(pick, stepped, state), k), None
+        return (jax.tree.map(pick, stepped, state), k, params, counts), None
 
-    (env_state, _), _ = jax.lax.scan(body, (env_state, key_steps), jnp.arange(episode_length - 1))
+    carry = (env_state, key_steps, params, counts)
+    (env_state, *_), _ = jax.lax.scan(body, carry, jnp.arange(episode_length - 1))
     return env_state
 
 
 def prime_normalizer(
     env: Any,
     env_state: Any,
-    policy: Callable[[jax.Array, jax.Array], tuple[jax.Array, Any]],
+    policy: ParamPolicy,
+    params: Any,
     normalizer_params: running_statistics.RunningStatisticsState,
     key: jax.Array,
     num_steps: int,
@@ -150,7 +164,9 @@ def prime_normalizer(
     Args:
       env: the training-wrapped (vmapped, auto-reset) env.
       env_state: its batched state, ``E`` envs on this device.
-      policy: ``policy(obs [E, O], key) -> (action [E, A], extras)``, the untrained one.
+      policy: ``policy(params, obs [E, O], key) -> (action [E, A], extras)``, the untrained
+        one.
+      params: its parameters (a pytree; see WRAPPED_SCAN_BODY).
       normalizer_params: the fresh normaliser state.
       key: rng for the actions.
       num_steps: control steps to take (a whole number of episodes brings every env back to
@@ -162,12 +178,13 @@ def prime_normalizer(
       ``[num_steps, E, O]`` added.
     """
 
+    @jax.jit  # see WRAPPED_SCAN_BODY
     def body(carry, _):
-        state, k = carry
+        state, k, params = carry
         k, k_act = jax.random.split(k)
-        return (env.step(state, policy(state.obs, k_act)[0]), k), state.obs
+        return (env.step(state, policy(params, state.obs, k_act)[0]), k, params), state.obs
 
-    (env_state, _), obs = jax.lax.scan(body, (env_state, key), None, length=num_steps)
+    (env_state, *_), obs = jax.lax.scan(body, (env_state, key, params), None, length=num_steps)
     normalizer_params = running_statistics.update(normalizer_params, obs, pmap_axis_name=axis_name)
     return normalizer_params, env_state
 

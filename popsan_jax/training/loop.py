@@ -101,13 +101,21 @@ def build_trainer(config: RunConfig, environment: Any = None) -> Trainer:
     return Trainer(config, env, wrapped, networks, optimizer, iteration, episode_length, devices)
 
 
+def _param_policy(make_policy: Callable[..., Any]) -> Callable[..., Any]:
+    """``policy(params, obs, key)`` from Brax's ``make_policy(params)(obs, key)`` (the run's
+    stochastic policy), for the scans that take their parameters explicitly."""
+    return lambda params, obs, key: make_policy(params)(obs, key)
+
+
 def _stagger(t: Trainer, make_policy: Callable[..., Any]) -> Callable[..., Any]:
     """pmapped ``(state [D], env_state [D], keys [D]) -> env_state``: stagger_episodes
     with the run's stochastic policy."""
 
     def stagger(state: TrainingState, env_state: Any, key: jax.Array) -> Any:
-        policy = make_policy((state.normalizer_params, state.params.policy))
-        return stagger_episodes(t.wrapped, env_state, policy, key, t.episode_length)
+        params = (state.normalizer_params, state.params.policy)
+        return stagger_episodes(
+            t.wrapped, env_state, _param_policy(make_policy), params, key, t.episode_length
+        )
 
     return jax.pmap(stagger)
 
@@ -117,10 +125,16 @@ def _prime(t: Trainer, make_policy: Callable[..., Any]) -> Callable[..., Any]:
     seeded by prime_normalizer with the run's untrained stochastic policy."""
 
     def prime(state: TrainingState, env_state: Any, key: jax.Array) -> tuple[Any, Any]:
-        policy = make_policy((state.normalizer_params, state.params.policy))
+        params = (state.normalizer_params, state.params.policy)
         steps = t.config.prime_normalizer_episodes * t.episode_length
         normalizer, env_state = prime_normalizer(
-            t.wrapped, env_state, policy, state.normalizer_params, key, steps
+            t.wrapped,
+            env_state,
+            _param_policy(make_policy),
+            params,
+            state.normalizer_params,
+            key,
+            steps,
         )
         return state.replace(normalizer_params=normalizer), env_state
 

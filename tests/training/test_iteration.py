@@ -98,19 +98,19 @@ def test_prime_normalizer_holds_the_statistics_of_a_plain_rollout():
     wrapped = brax_training.wrap(env, episode_length=length)
     start = jax.jit(wrapped.reset)(jax.random.split(jax.random.PRNGKey(3), n))
 
-    def policy(obs, key):  # deterministic: half way towards the object, clipped
-        return jnp.clip(5.0 * obs[:, 3:6], -1.0, 1.0), {}
+    def policy(gain, obs, key):  # deterministic: half way towards the object, clipped
+        return jnp.clip(gain * obs[:, 3:6], -1.0, 1.0), {}
 
     fresh = running_statistics.init_state(jnp.zeros((env.observation_size,), jnp.float32))
     primed, end = jax.jit(
-        lambda s, k: iteration.prime_normalizer(wrapped, s, policy, fresh, k, length, None)
-    )(start, jax.random.PRNGKey(4))
+        lambda s, k, g: iteration.prime_normalizer(wrapped, s, policy, g, fresh, k, length, None)
+    )(start, jax.random.PRNGKey(4), jnp.float32(5.0))
 
     step = jax.jit(wrapped.step)
     state, seen = start, []
     for _ in range(length):
         seen.append(np.asarray(state.obs, np.float64))
-        state = step(state, policy(state.obs, None)[0])
+        state = step(state, policy(5.0, state.obs, None)[0])
     seen = np.stack(seen)  # [L, E, O]
     assert seen[1:].std() > 0  # the hands moved: the statistics are not those of one frame
     assert int(primed.count) == length * n

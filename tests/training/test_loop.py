@@ -173,10 +173,11 @@ def test_stagger_spreads_episode_phases():
     wrapped = brax_training.wrap(PointPick(episode_length=length), episode_length=length)
     start = wrapped.reset(jax.random.split(jax.random.PRNGKey(0), n))
 
-    def policy(obs, key):
-        return jax.random.uniform(key, (obs.shape[0], 3), minval=-1.0, maxval=1.0), {}
+    def policy(reach, obs, key):
+        return reach * jax.random.uniform(key, (obs.shape[0], 3), minval=-1.0, maxval=1.0), {}
 
-    out = jax.jit(lambda s, k: iteration.stagger_episodes(wrapped, s, policy, k, length))(
+    stagger = iteration.stagger_episodes
+    out = jax.jit(lambda s, k: stagger(wrapped, s, policy, jnp.float32(1.0), k, length))(
         start, jax.random.PRNGKey(1)
     )
     steps = np.asarray(out.info["steps"]).astype(int)
