@@ -37,8 +37,8 @@ def make_evaluate_fn(
     def evaluate(state: TrainingState, key: jax.Array) -> dict[str, float]:
         t0 = time.monotonic()
         # Committed to one device whatever the caller holds (the initial state's host arrays
-        # or a pmapped state's first copy): the runner compiles once per run, not twice,
-        # and on franka_pick one compile is minutes and ~15 GB.
+        # or a pmapped state's first copy): the runner compiles once per run, not twice (an
+        # MJX rollout compile is the costliest part of a run's start).
         inputs = jax.device_put(((state.normalizer_params, state.params.policy), key), device)
         batch = jax.device_get(runner(*inputs))
         return eval_record(batch, time.monotonic() - t0)

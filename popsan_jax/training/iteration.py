@@ -90,11 +90,11 @@ def refresh_reset_states(env: Any, env_state: Any, key: jax.Array) -> Any:
 
 
 # WRAPPED_SCAN_BODY: on XLA:CPU a ``lax.scan`` whose body steps Brax's training-wrapped env
-# compiles about 6x slower and peaks at ~19 GB of host memory (franka_pick: ~126 s against
-# ~21 s, at any batch size or scan length) unless the body is itself ``jax.jit``-ed, as Brax's
-# ``acting.generate_unroll`` does, and closes over no traced value: the policy's parameters and
-# anything else traced ride in the carry (benchmarks/scan_body_compile.py; docs/design.md, "A
-# jitted scan body"). Hence the explicit ``params`` of the policies below.
+# compiles several times slower, with several times the host memory, at any batch size or scan
+# length, unless the body is itself ``jax.jit``-ed (as Brax's ``acting.generate_unroll`` does)
+# and closes over no traced value: the policy's parameters and anything else traced ride in
+# the carry. Hence the explicit ``params`` of the policies below (docs/design.md, "A jitted
+# scan body"; benchmarks/scan_body_compile.py measures both forms).
 ParamPolicy = Callable[[Any, jax.Array, jax.Array], tuple[jax.Array, Any]]
 
 

@@ -97,7 +97,7 @@ def test_run_directory_contents(two_iteration_run):
 def test_evaluation_compiles_once_per_run(tmp_path, monkeypatch):
     """The step-0 evaluation gets the initial state (host arrays), later ones a pmapped
     state's first copy (committed device arrays): the runner must see one signature, since
-    on franka_pick a second compile costs minutes and ~15 GB mid-run."""
+    on franka_pick a second MJX rollout compile mid-run would repeat a costly compile."""
     runners = []
 
     def recording(*args, **kwargs):
