@@ -31,7 +31,7 @@ from train_throughput import cpu_name, matmul_gflops
 
 from popsan_jax.jax_setup import import_mjx_quietly
 from popsan_jax.recipes import resolve_config
-from popsan_jax.training.iteration import init_training_state, stagger_episodes
+from popsan_jax.training.iteration import init_training_state, param_policy, stagger_episodes
 from popsan_jax.training.setup import build_networks, make_env, make_optimizer
 
 FORMS = ("closure", "jitted")
@@ -54,8 +54,7 @@ def measure(form: str, actor: str, num_envs: int, steps: int) -> dict[str, float
     if form == "jitted":
 
         def fn(s, p, key):
-            policy = lambda q, obs, k: make_policy(q)(obs, k)  # noqa: E731
-            return stagger_episodes(wrapped, s, policy, p, key, steps + 1)
+            return stagger_episodes(wrapped, s, param_policy(make_policy), p, key, steps + 1)
 
     else:
 

@@ -98,6 +98,12 @@ def refresh_reset_states(env: Any, env_state: Any, key: jax.Array) -> Any:
 ParamPolicy = Callable[[Any, jax.Array, jax.Array], tuple[jax.Array, Any]]
 
 
+def param_policy(make_policy: Callable[[Any], Callable[..., Any]]) -> ParamPolicy:
+    """``policy(params, obs, key)`` from Brax's ``make_policy(params)(obs, key)``, for the
+    scans below that take their parameters explicitly (WRAPPED_SCAN_BODY)."""
+    return lambda params, obs, key: make_policy(params)(obs, key)
+
+
 def stagger_episodes(
     env: Any,
     env_state: Any,

@@ -40,6 +40,7 @@ from popsan_jax.training.iteration import (
     TrainingState,
     init_training_state,
     make_iteration_fn,
+    param_policy,
     prime_normalizer,
     stagger_episodes,
 )
@@ -101,12 +102,6 @@ def build_trainer(config: RunConfig, environment: Any = None) -> Trainer:
     return Trainer(config, env, wrapped, networks, optimizer, iteration, episode_length, devices)
 
 
-def _param_policy(make_policy: Callable[..., Any]) -> Callable[..., Any]:
-    """``policy(params, obs, key)`` from Brax's ``make_policy(params)(obs, key)`` (the run's
-    stochastic policy), for the scans that take their parameters explicitly."""
-    return lambda params, obs, key: make_policy(params)(obs, key)
-
-
 def _stagger(t: Trainer, make_policy: Callable[..., Any]) -> Callable[..., Any]:
     """pmapped ``(state [D], env_state [D], keys [D]) -> env_state``: stagger_episodes
     with the run's stochastic policy."""
@@ -114,7 +109,7 @@ def _stagger(t: Trainer, make_policy: Callable[..., Any]) -> Callable[..., Any]:
     def stagger(state: TrainingState, env_state: Any, key: jax.Array) -> Any:
         params = (state.normalizer_params, state.params.policy)
         return stagger_episodes(
-            t.wrapped, env_state, _param_policy(make_policy), params, key, t.episode_length
+            t.wrapped, env_state, param_policy(make_policy), params, key, t.episode_length
         )
 
     return jax.pmap(stagger)
@@ -130,7 +125,7 @@ def _prime(t: Trainer, make_policy: Callable[..., Any]) -> Callable[..., Any]:
         normalizer, env_state = prime_normalizer(
             t.wrapped,
             env_state,
-            _param_policy(make_policy),
+            param_policy(make_policy),
             params,
             state.normalizer_params,
             key,
