@@ -36,7 +36,9 @@ LR_SCHEDULES = ("constant", "cosine")
 POPSAN_DEFAULTS: dict[str, Any] = dict(
     hidden_sizes=(256, 256), encoder_pop_dim=10, decoder_pop_dim=10, timesteps=5
 )
-MLP_DEFAULTS: dict[str, Any] = dict(hidden_sizes=(256, 256))
+# The MLP's output layer starts 100x smaller than LeCun's (docs/design.md, "The MLP's output
+# layer starts small"); configs without the key keep MLPActor's own 1.0.
+MLP_DEFAULTS: dict[str, Any] = dict(hidden_sizes=(256, 256), output_init_scale=0.01)
 FLAG_HELP = "help"  # the dataclass field metadata key that makes a RunConfig field a flag
 
 
@@ -50,7 +52,8 @@ class RunConfig:
     """Everything that defines a training run (saved as ``config.json``).
 
     ``actor_kwargs`` are passed to the actor module (PopSAN: hidden_sizes, encoder_pop_dim,
-    decoder_pop_dim, timesteps; MLP: hidden_sizes). ``episode_length`` None means the env's own.
+    decoder_pop_dim, timesteps; MLP: hidden_sizes, output_init_scale). ``episode_length`` None
+    means the env's own.
     Fields declared with ``_flag`` are train.py's flags (``popsan_jax.cli`` derives them: name,
     type and help from here).
     """

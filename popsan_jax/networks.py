@@ -26,14 +26,22 @@ from popsan_jax.snn.popsan import PopSAN
 
 
 def dense_stack(
-    x: jax.Array, hidden_sizes: Sequence[int], activation: Callable, out_features: int
+    x: jax.Array,
+    hidden_sizes: Sequence[int],
+    activation: Callable,
+    out_features: int,
+    output_init_scale: float = 1.0,
 ) -> jax.Array:
     """``hidden_k`` Dense + activation layers, then a linear ``output`` layer (inside a compact
     method: the layers belong to the calling module, so its params read ``hidden_k``/``output``).
+
+    Every kernel starts LeCun-normal; the output kernel's standard deviation is multiplied by
+    ``output_init_scale`` (its bias starts at 0).
     """
     for k, size in enumerate(hidden_sizes):
         x = activation(nn.Dense(size, name=f"hidden_{k}")(x))
-    return nn.Dense(out_features, name="output")(x)
+    init = nn.initializers.variance_scaling(output_init_scale**2, "fan_in", "truncated_normal")
+    return nn.Dense(out_features, kernel_init=init, name="output")(x)
 
 
 class MLPActor(nn.Module):
@@ -42,10 +50,14 @@ class MLPActor(nn.Module):
     action_size: int
     hidden_sizes: Sequence[int] = (256, 256)
     activation: Callable[[jax.Array], jax.Array] = nn.elu
+    output_init_scale: float = 1.0
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
-        return jnp.tanh(dense_stack(obs, self.hidden_sizes, self.activation, self.action_size))
+        mean = dense_stack(
+            obs, self.hidden_sizes, self.activation, self.action_size, self.output_init_scale
+        )
+        return jnp.tanh(mean)
 
 
 class Critic(nn.Module):

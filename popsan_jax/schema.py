@@ -20,12 +20,14 @@ from popsan_jax.errors import CheckpointError, ConfigError
 
 MAX_SEED = 2**32 - 1  # jax.random.PRNGKey takes a uint32 seed
 # Actor kwargs: name -> kind ("sizes" = a non-empty list of integers >= 1). Every kwarg of
-# either actor (popsan_jax.config.POPSAN_DEFAULTS, MLP_DEFAULTS) is listed; each count >= 1.
+# either actor (popsan_jax.config.POPSAN_DEFAULTS, MLP_DEFAULTS) is listed; each count >= 1,
+# each positive number > 0.
 ACTOR_KWARGS = {
     "hidden_sizes": "sizes",
     "timesteps": "count",
     "encoder_pop_dim": "count",
     "decoder_pop_dim": "count",
+    "output_init_scale": "positive",
 }
 _WANTED = {
     "int": "an integer",
@@ -35,6 +37,7 @@ _WANTED = {
     "dict": "a JSON object",
     "sizes": "a non-empty list of positive integers like [256, 256]",
     "count": "an integer >= 1",
+    "positive": "a finite number > 0",
 }
 
 
@@ -65,6 +68,8 @@ def _ok(kind: str, value: Any) -> bool:
         )
     if kind == "count":
         return is_int(value) and value >= 1
+    if kind == "positive":
+        return is_number(value) and value > 0
     raise AssertionError(f"unknown kind {kind}")
 
 

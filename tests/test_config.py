@@ -51,7 +51,7 @@ def test_precedence_backend_then_preset_then_flags():
     assert flagged.actor_kwargs["timesteps"] == 3
     assert flagged.actor_kwargs["hidden_sizes"] == (256, 256)
     mlp = resolve_config(None, "cpu", {"actor": "mlp"}, {"hidden_sizes": (32, 32)})
-    assert mlp.actor_kwargs == {"hidden_sizes": (32, 32)}
+    assert mlp.actor_kwargs == {"hidden_sizes": (32, 32), "output_init_scale": 0.01}
 
 
 def test_accelerator_defaults_scale_the_cpu_recipe():
@@ -264,5 +264,9 @@ def test_documented_mlp_fine_tune_is_the_committed_three_seeds(tmp_path, monkeyp
         args = train_parser().parse_args([*argv, "--runs-dir", str(tmp_path)])
         config, run_dir = prepare_run("cpu", *given_flags(args), **run_choices(args))
         committed = RunConfig.from_json(ROOT / f"docs/results/climb/{name}/config.json")
-        assert config == committed and run_dir == tmp_path / name
+        # The runs predate the MLP's output_init_scale, which a started run's loaded weights
+        # make moot (warm_start.FREE_ACTOR_KWARGS); the command now records the default.
+        assert config.actor_kwargs == {**committed.actor_kwargs, "output_init_scale": 0.01}
+        assert config.replace(actor_kwargs=committed.actor_kwargs) == committed
+        assert run_dir == tmp_path / name
         assert committed.critic_warmup_env_steps == 491520 and committed.seed == seed

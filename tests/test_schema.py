@@ -49,6 +49,9 @@ def test_config_field_types_and_ranges(key, value, match, tmp_path):
         ({"decoder_pop_dim": "10"}, "actor_kwargs.decoder_pop_dim must be an integer >= 1"),
         ({"hidden_sizes": "abc"}, "actor_kwargs.hidden_sizes must be a non-empty list"),
         ({"depth": 3}, "actor_kwargs has unknown key 'depth'"),
+        ({"output_init_scale": 0}, "actor_kwargs.output_init_scale must be a finite number > 0"),
+        ({"output_init_scale": -0.5}, "actor_kwargs.output_init_scale must be a finite number"),
+        ({"output_init_scale": "0.01"}, "actor_kwargs.output_init_scale must be a finite number"),
     ],
 )
 def test_actor_kwargs(kwargs, match):

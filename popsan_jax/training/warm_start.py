@@ -30,20 +30,14 @@ def warm_source(config: RunConfig, run_dir: str | Path) -> tuple[str, str] | Non
     return None
 
 
-def warm_start(
-    state: Any, config: RunConfig, optimizer: Any, source: tuple[str, str], environment: Any = None
-) -> Any:
-    """``state`` (a fresh TrainingState of ``config``) with the policy, critic and observation
-    normaliser of ``source`` (``(run directory, checkpoint)``, see :func:`warm_source`) and a
-    fresh optimiser.
+# Actor kwargs a warm start may change: neither changes the parameters or what loaded ones do.
+FREE_ACTOR_KWARGS = frozenset({"timesteps", "output_init_scale"})
 
-    The networks must match except PopSAN's ``timesteps`` (its parameters do not depend on
-    ``T``), so a policy trained at one ``T`` can be fine-tuned at another. A mismatch raises
-    ConfigError; a missing or damaged source raises CheckpointError.
-    """
-    where, which = source
-    loaded = load_run(where, int(which) if which.isdigit() else which, environment)
-    theirs, ours = loaded.config, config
+
+def check_same_networks(theirs: RunConfig, ours: RunConfig, where: str) -> None:
+    """ConfigError unless a run of config ``ours`` can start from one of ``theirs`` (found at
+    ``where``): the same env, actor and critic, and the same actor kwargs except those in
+    ``FREE_ACTOR_KWARGS`` (a kwarg one config lacks counts as different, unless free)."""
     for name in ("env", "actor", "critic_hidden_sizes"):
         if getattr(theirs, name) != getattr(ours, name):
             raise ConfigError(
@@ -51,13 +45,32 @@ def warm_start(
                 f"differs from this run's {getattr(ours, name)!r}"
             )
     keys = set(theirs.actor_kwargs) | set(ours.actor_kwargs)
-    for name in sorted(keys - {"timesteps"}):
+    for name in sorted(keys - FREE_ACTOR_KWARGS):
         if theirs.actor_kwargs.get(name) != ours.actor_kwargs.get(name):
             raise ConfigError(
                 f"cannot start from {where}: its actor {name} "
                 f"{theirs.actor_kwargs.get(name)!r} differs from this run's "
-                f"{ours.actor_kwargs.get(name)!r} (only timesteps may differ)"
+                f"{ours.actor_kwargs.get(name)!r} (only {' and '.join(sorted(FREE_ACTOR_KWARGS))} "
+                "may differ)"
             )
+
+
+def warm_start(
+    state: Any, config: RunConfig, optimizer: Any, source: tuple[str, str], environment: Any = None
+) -> Any:
+    """``state`` (a fresh TrainingState of ``config``) with the policy, critic and observation
+    normaliser of ``source`` (``(run directory, checkpoint)``, see :func:`warm_source`) and a
+    fresh optimiser.
+
+    The networks must match except in ``FREE_ACTOR_KWARGS``: PopSAN's ``timesteps`` (its
+    parameters do not depend on ``T``), so a policy trained at one ``T`` can be fine-tuned at
+    another, and the MLP's ``output_init_scale`` (it only scales the initial draw, which the
+    loaded parameters replace). A mismatch raises
+    ConfigError; a missing or damaged source raises CheckpointError.
+    """
+    where, which = source
+    loaded = load_run(where, int(which) if which.isdigit() else which, environment)
+    check_same_networks(loaded.config, config, where)
     params = state.params.replace(policy=loaded.policy_params, value=loaded.value_params)
     shapes = [jax.tree.map(jnp.shape, p) for p in (state.params, params)]
     if shapes[0] != shapes[1]:

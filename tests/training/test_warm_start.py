@@ -11,10 +11,11 @@ from _toy_env import PointPick
 
 from popsan_jax.config import RunConfig
 from popsan_jax.errors import ConfigError
+from popsan_jax.recipes import resolve_config
 from popsan_jax.training.checkpoint import load_run
 from popsan_jax.training.iteration import init_training_state
 from popsan_jax.training.setup import build_networks, make_optimizer
-from popsan_jax.training.warm_start import warm_source, warm_start
+from popsan_jax.training.warm_start import check_same_networks, warm_source, warm_start
 
 
 def test_warm_start_copies_networks_normaliser_and_not_the_optimiser(source_and_penalised):
@@ -48,6 +49,21 @@ def test_warm_start_copies_networks_normaliser_and_not_the_optimiser(source_and_
     mlp = config.replace(actor="mlp", actor_kwargs={"hidden_sizes": (16,)})
     with pytest.raises(ConfigError, match="its actor 'popsan' differs"):
         warm_start(fresh, mlp, optimizer, source, env)
+
+
+def test_an_mlp_run_from_before_output_init_scale_can_be_started_from():
+    # Runs made before the MLP's output_init_scale have no such key; the command now records
+    # 0.01. Only the initial draw depends on it, so --init-from such a run is allowed, while a
+    # real difference in the network (here the hidden sizes) is still refused.
+    old = RunConfig().replace(actor="mlp", actor_kwargs={"hidden_sizes": (256, 256)})
+    new = resolve_config(None, "cpu", {"actor": "mlp"})
+    assert new.actor_kwargs["output_init_scale"] == 0.01
+    check_same_networks(old, new, "runs/old")
+    narrower = new.replace(actor_kwargs={**new.actor_kwargs, "hidden_sizes": (64,)})
+    with pytest.raises(
+        ConfigError, match="actor hidden_sizes .*only output_init_scale and timesteps"
+    ):
+        check_same_networks(old, narrower, "runs/old")
 
 
 def test_warm_source_prefers_the_runs_own_warm_up(tmp_path):
