@@ -20,6 +20,8 @@ from popsan_jax.training.setup import make_env
 from popsan_jax.training.stages import warmup_config
 
 ROOT = Path(__file__).resolve().parent.parent
+# franka_pick's second stage before 6 December (since then PICK_RECIPE's 4 M steps, 16 evals).
+SECOND_STAGE_2M = dict(total_env_steps=2_000_000, num_evals=8)
 
 
 def test_derived_sizes_hand_computed():
@@ -99,7 +101,8 @@ def test_readme_command_is_the_committed_pick_hold_chain():
     # (docs/reference/pick-hold-popsan-s0; revision 2 spelt out as overrides), its own stage the
     # 2 M-step fine-tune from that run's last checkpoint (docs/reference/pick-hold-popsan-ft-s0),
     # the warm-up taking the place of init_from; revision 5 adds only the lift ramp and the climb
-    # term. `--seed K` and `--actor mlp` change only those fields.
+    # term, and since 6 December the second stage is 4 M steps long (SECOND_STAGE_2M undoes it).
+    # `--seed K` and `--actor mlp` change only those fields.
     command = resolve_config(None, "cpu", dict(env="franka_pick"))
     fine_tune = RunConfig.from_json(ROOT / "docs/reference/pick-hold-popsan-ft-s0/config.json")
     assert fine_tune.init_from == "docs/reference/pick-hold-popsan-s0"
@@ -107,7 +110,9 @@ def test_readme_command_is_the_committed_pick_hold_chain():
     assert fine_tune.env_revision == 4
     warm = dict((k, PICK_RECIPE[k]) for k in PICK_RECIPE if k.startswith("warmup_"))
     as_fine_tune = fine_tune.replace(init_from=None, init_checkpoint="best", **warm)
-    assert command == as_fine_tune.replace(env_revision=CURRENT_ENV_REVISION)
+    assert command.replace(**SECOND_STAGE_2M) == as_fine_tune.replace(
+        env_revision=CURRENT_ENV_REVISION
+    )
     revision_2 = RunConfig.from_json(ROOT / "docs/reference/pick-hold-popsan-s0/config.json")
     assert revision_2.env_revision == 2
     as_revision_2 = warmup_config(command).replace(env_overrides={}, env_revision=2)
@@ -124,6 +129,7 @@ def test_readme_command_is_the_committed_climb_runs():
         path = ROOT / f"docs/results/climb/popsan-climb-s{seed}/config.json"
         committed = RunConfig.from_json(path)
         command = resolve_config(None, "cpu", dict(env="franka_pick", seed=seed))
+        command = command.replace(**SECOND_STAGE_2M)
         if seed == 1:  # rerun on 5 December with the plain command of revision 5
             assert committed == command
         else:
@@ -143,7 +149,7 @@ def test_pick_warm_up_is_the_revision_2_task():
     warm = envs.merge_overrides(PICK_RECIPE["warmup_env_overrides"], revision_5_shaping_undone)
     assert warm == envs.legacy_overrides("franka_pick", 2)
     cpu, gpu = resolve_config(None, "cpu"), resolve_config(None, "gpu")
-    assert cpu.warmup_env_steps == 6_000_000 and cpu.total_env_steps == 2_000_000
+    assert cpu.warmup_env_steps == 6_000_000 and cpu.total_env_steps == 4_000_000
     assert gpu.warmup_env_steps == 4 * cpu.warmup_env_steps
     # Another env and the presets (whole recipes of their own) have no warm-up.
     assert resolve_config(None, "cpu", dict(env="franka_reach")).warmup_env_steps == 0
