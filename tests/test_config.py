@@ -121,6 +121,31 @@ def test_readme_command_is_the_committed_pick_hold_chain():
     assert mlp.replace(actor="popsan", seed=0, actor_kwargs=command.actor_kwargs) == command
 
 
+def test_readme_command_is_the_committed_4m_stage_runs():
+    # docs/results.md, "The README's command since 6 December": each run is the README's command
+    # for its actor and seed, either whole or as its warm-up (RUN/warmup) followed by the 4 M-step
+    # stage started from that warm-up, which is the command's own stage with init_from set.
+    whole = [("stage4m/popsan-s0", "popsan", 0), ("stage4m/popsan-s2", "popsan", 2)]
+    whole += [("stage4m/mlp-s1", "mlp", 1)]
+    split = [("stage4m/mlp-s0", "stage4m/mlp-s0/warmup", "runs/mlpinit-s0/warmup", "mlp", 0)]
+    split += [
+        ("readme5/popsan-s1-4m", "readme5/popsan-s1/warmup", "runs/popsan-s1/warmup", "popsan", 1)
+    ]
+    results = ROOT / "docs/results"
+    for path, actor, seed in whole:
+        command = resolve_config(None, "cpu", dict(env="franka_pick", actor=actor, seed=seed))
+        assert RunConfig.from_json(results / path / "config.json") == command
+        warm_up = RunConfig.from_json(results / path / "warmup/config.json")
+        assert warm_up == warmup_config(command)
+    for path, warm_path, source, actor, seed in split:
+        command = resolve_config(None, "cpu", dict(env="franka_pick", actor=actor, seed=seed))
+        stage = command.replace(init_from=source, init_checkpoint="last", warmup_env_steps=0)
+        assert RunConfig.from_json(results / path / "config.json") == stage
+        warm_up = RunConfig.from_json(results / warm_path / "config.json")
+        assert warm_up == warmup_config(command)
+    assert command.total_env_steps == 4_000_000 and command.num_evals == 16
+
+
 def test_readme_command_is_the_committed_climb_runs():
     # The three-seed headline (docs/results.md, "Revision 5") was trained on revision 4 with the
     # ramp and the climb term as overrides: the same run config as the README's command, and in
