@@ -126,7 +126,7 @@ def test_readme_command_is_the_committed_4m_stage_runs():
     # for its actor and seed, either whole or as its warm-up (RUN/warmup) followed by the 4 M-step
     # stage started from that warm-up, which is the command's own stage with init_from set.
     whole = [("stage4m/popsan-s0", "popsan", 0), ("stage4m/popsan-s2", "popsan", 2)]
-    whole += [("stage4m/mlp-s1", "mlp", 1)]
+    whole += [("stage4m/mlp-s1", "mlp", 1), ("stage4m/mlp-s2", "mlp", 2)]
     split = [("stage4m/mlp-s0", "stage4m/mlp-s0/warmup", "runs/mlpinit-s0/warmup", "mlp", 0)]
     split += [
         ("readme5/popsan-s1-4m", "readme5/popsan-s1/warmup", "runs/popsan-s1/warmup", "popsan", 1)
