@@ -28,6 +28,7 @@ ACTOR_FLAG_HELP = {
     "timesteps": "PopSAN timesteps T",
     "encoder_pop_dim": "PopSAN encoder population per observation dimension",
     "decoder_pop_dim": "PopSAN output population per action dimension",
+    "decoder_init_scale": "PopSAN decoder's initial weights, times the paper's draw",
 }
 assert set(ACTOR_FLAG_HELP) == set(POPSAN_DEFAULTS), "one help line per PopSAN shape key"
 

@@ -32,13 +32,18 @@ ACTORS = ("popsan", "mlp")
 CURRENT_ENV_REVISION = 5
 LR_SCHEDULES = ("constant", "cosine")
 
-# The paper's PopSAN shape (DESIGN.md): pop 10 in and out, hidden 256-256, T = 5.
+# The actors' own defaults: the paper's PopSAN (pop 10 in and out, hidden 256-256, T = 5, its
+# decoder drawn as PyTorch's Linear) and a 256-256 MLP with LeCun-normal layers. The default
+# recipe starts the MLP's output layer smaller (recipes.ACTOR_RECIPES); a config without an
+# init scale builds with 1.0, as these do.
 POPSAN_DEFAULTS: dict[str, Any] = dict(
-    hidden_sizes=(256, 256), encoder_pop_dim=10, decoder_pop_dim=10, timesteps=5
+    hidden_sizes=(256, 256),
+    encoder_pop_dim=10,
+    decoder_pop_dim=10,
+    timesteps=5,
+    decoder_init_scale=1.0,
 )
-# The MLP's output layer starts 100x smaller than LeCun's (docs/design.md, "The MLP's output
-# layer starts small"); configs without the key keep MLPActor's own 1.0.
-MLP_DEFAULTS: dict[str, Any] = dict(hidden_sizes=(256, 256), output_init_scale=0.01)
+MLP_DEFAULTS: dict[str, Any] = dict(hidden_sizes=(256, 256), output_init_scale=1.0)
 FLAG_HELP = "help"  # the dataclass field metadata key that makes a RunConfig field a flag
 
 
@@ -52,8 +57,8 @@ class RunConfig:
     """Everything that defines a training run (saved as ``config.json``).
 
     ``actor_kwargs`` are passed to the actor module (PopSAN: hidden_sizes, encoder_pop_dim,
-    decoder_pop_dim, timesteps; MLP: hidden_sizes, output_init_scale). ``episode_length`` None
-    means the env's own.
+    decoder_pop_dim, timesteps, decoder_init_scale; MLP: hidden_sizes, output_init_scale).
+    ``episode_length`` None means the env's own.
     Fields declared with ``_flag`` are train.py's flags (``popsan_jax.cli`` derives them: name,
     type and help from here).
     """

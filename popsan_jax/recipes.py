@@ -1,9 +1,10 @@
 """Presets and default recipes: what train.py's flags override.
 
 Order (:func:`resolve_config`): the backend's defaults (the CPU recipe, scaled on an
-accelerator), then the env's own recipe (franka_pick's warm-up curriculum) when no preset is
-given, then the preset, then explicit flags. A preset is a whole recipe of its own, so the env's
-recipe does not apply under one.
+accelerator), then the env's own recipe (franka_pick's warm-up curriculum) and the actor's
+(``ACTOR_RECIPES``, small output layers) when no preset is given, then the preset, then explicit
+flags. A preset is a whole recipe of its own, so the env's and the actor's recipes do not apply
+under one.
 """
 
 from __future__ import annotations
@@ -92,6 +93,13 @@ PICK_RECIPE: dict[str, Any] = dict(
 )
 ENV_RECIPES: dict[str, dict[str, Any]] = {"franka_pick": PICK_RECIPE}
 
+# The default recipe's actor kwargs over the actors' own (config.POPSAN_DEFAULTS, MLP_DEFAULTS):
+# the MLP's output layer starts at 0.01x its draw, so its first policy is the exploration noise
+# around a still arm; PopSAN keeps the paper's decoder draw, which learnt faster than a small
+# one (docs/design.md, "The output layers start small"). Presets keep the actors' own draws
+# (the paper preset is the paper's network).
+ACTOR_RECIPES: dict[str, dict[str, Any]] = {"popsan": {}, "mlp": dict(output_init_scale=0.01)}
+
 # The rule that scales the recipes to an accelerator's thousands of envs.
 ACCELERATOR_SCALE = 4
 SCALED = ("num_envs", "batch_size", "total_env_steps", "warmup_env_steps")
@@ -125,7 +133,8 @@ def resolve_config(
     actor_overrides: dict[str, Any] | None = None,
 ) -> RunConfig:
     """Backend defaults (with the env's recipe unless a preset is given) < preset < explicit
-    overrides; actor kwargs default by actor name.
+    overrides; actor kwargs default by actor name (with ``ACTOR_RECIPES`` unless a preset is
+    given).
 
     ``actor_overrides`` (e.g. ``timesteps``) update the chosen actor's default kwargs; a key
     the actor does not take raises ConfigError.
@@ -142,6 +151,8 @@ def resolve_config(
         raise ConfigError(f"unknown actor {actor!r}; choose one of {', '.join(ACTORS)}")
     if "actor_kwargs" not in values:
         values["actor_kwargs"] = dict(POPSAN_DEFAULTS if actor == "popsan" else MLP_DEFAULTS)
+        if preset is None:
+            values["actor_kwargs"].update(ACTOR_RECIPES[actor])
     extra = {k: v for k, v in (actor_overrides or {}).items() if v is not None}
     bad = sorted(set(extra) - set(values["actor_kwargs"]))
     if bad:

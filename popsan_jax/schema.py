@@ -28,6 +28,7 @@ ACTOR_KWARGS = {
     "encoder_pop_dim": "count",
     "decoder_pop_dim": "count",
     "output_init_scale": "positive",
+    "decoder_init_scale": "positive",
 }
 _WANTED = {
     "int": "an integer",

@@ -14,7 +14,7 @@ import envs
 from popsan_jax.cli import given_flags, run_choices, train_parser
 from popsan_jax.config import CURRENT_ENV_REVISION, POPSAN_DEFAULTS, RunConfig
 from popsan_jax.errors import ConfigError
-from popsan_jax.recipes import PICK_RECIPE, PRESETS, resolve_config
+from popsan_jax.recipes import ACTOR_RECIPES, PICK_RECIPE, PRESETS, resolve_config
 from popsan_jax.training.run import prepare_run
 from popsan_jax.training.setup import make_env
 from popsan_jax.training.stages import warmup_config
@@ -22,6 +22,15 @@ from popsan_jax.training.stages import warmup_config
 ROOT = Path(__file__).resolve().parent.parent
 # franka_pick's second stage before 6 December (since then PICK_RECIPE's 4 M steps, 16 evals).
 SECOND_STAGE_2M = dict(total_env_steps=2_000_000, num_evals=8)
+
+
+def earlier_command(**flags) -> RunConfig:
+    """The README's command ``train.py --env franka_pick`` with ``flags`` as configs recorded it
+    before PopSAN's ``decoder_init_scale`` existed: without the key, which builds the same 1.0."""
+    command = resolve_config(None, "cpu", dict(env="franka_pick", **flags))
+    assert command.actor_kwargs.get("decoder_init_scale", 1.0) == 1.0
+    kwargs = {k: v for k, v in command.actor_kwargs.items() if k != "decoder_init_scale"}
+    return command.replace(actor_kwargs=kwargs)
 
 
 def test_derived_sizes_hand_computed():
@@ -54,6 +63,22 @@ def test_precedence_backend_then_preset_then_flags():
     assert flagged.actor_kwargs["hidden_sizes"] == (256, 256)
     mlp = resolve_config(None, "cpu", {"actor": "mlp"}, {"hidden_sizes": (32, 32)})
     assert mlp.actor_kwargs == {"hidden_sizes": (32, 32), "output_init_scale": 0.01}
+
+
+def test_presets_keep_the_actors_own_draws():
+    # The default recipe starts the MLP's output layer at 0.01x its draw (ACTOR_RECIPES) and
+    # keeps PopSAN's; a preset is a whole recipe of its own and builds the actors as their
+    # modules' defaults do (the paper preset is the paper's network), unless flags say otherwise.
+    assert ACTOR_RECIPES == {"popsan": {}, "mlp": {"output_init_scale": 0.01}}
+    assert resolve_config(None, "cpu", dict(actor="mlp")).actor_kwargs["output_init_scale"] == 0.01
+    assert resolve_config(None, "cpu").actor_kwargs["decoder_init_scale"] == 1.0
+    for preset in PRESETS:
+        mlp = resolve_config(preset, "cpu", dict(actor="mlp"))
+        assert mlp.actor_kwargs == {"hidden_sizes": (256, 256), "output_init_scale": 1.0}
+        assert resolve_config(preset, "cpu").actor_kwargs == POPSAN_DEFAULTS
+    for actor, key in (("popsan", "decoder_init_scale"), ("mlp", "output_init_scale")):
+        flagged = resolve_config("paper", "cpu", dict(actor=actor), {key: 0.1})
+        assert flagged.actor_kwargs[key] == 0.1
 
 
 def test_accelerator_defaults_scale_the_cpu_recipe():
@@ -89,9 +114,13 @@ def test_paper_preset_is_the_committed_pick_run_that_learned():
     assert all(env_defaults[k] == v for k, v in overrides.items()), overrides
     for backend in ("cpu", "gpu"):
         paper = resolve_config("paper", backend, dict(seed=committed.seed))
-        # The same PPO and network settings; it now trains on the current env revision.
+        # The same PPO and network settings; it now trains on the current env revision, and
+        # records the decoder's init scale that a config without the key builds with.
         assert committed.env_revision == 1
-        current = committed.replace(env_overrides={}, env_revision=CURRENT_ENV_REVISION)
+        kwargs = {**committed.actor_kwargs, "decoder_init_scale": 1.0}
+        current = committed.replace(
+            env_overrides={}, env_revision=CURRENT_ENV_REVISION, actor_kwargs=kwargs
+        )
         assert paper == current, backend
 
 
@@ -103,12 +132,12 @@ def test_readme_command_is_the_committed_pick_hold_chain():
     # the warm-up taking the place of init_from; revision 5 adds only the lift ramp and the climb
     # term, and since 6 December the second stage is 4 M steps long (SECOND_STAGE_2M undoes it).
     # `--seed K` and `--actor mlp` change only those fields.
-    command = resolve_config(None, "cpu", dict(env="franka_pick"))
+    command = earlier_command()
     fine_tune = RunConfig.from_json(ROOT / "docs/reference/pick-hold-popsan-ft-s0/config.json")
     assert fine_tune.init_from == "docs/reference/pick-hold-popsan-s0"
     assert fine_tune.init_checkpoint == "last"  # what the warm-up hands on (warm_source)
     assert fine_tune.env_revision == 4
-    warm = dict((k, PICK_RECIPE[k]) for k in PICK_RECIPE if k.startswith("warmup_"))
+    warm = {k: getattr(command, k) for k in PICK_RECIPE if k.startswith("warmup_")}
     as_fine_tune = fine_tune.replace(init_from=None, init_checkpoint="best", **warm)
     assert command.replace(**SECOND_STAGE_2M) == as_fine_tune.replace(
         env_revision=CURRENT_ENV_REVISION
@@ -117,7 +146,7 @@ def test_readme_command_is_the_committed_pick_hold_chain():
     assert revision_2.env_revision == 2
     as_revision_2 = warmup_config(command).replace(env_overrides={}, env_revision=2)
     assert as_revision_2 == revision_2
-    mlp = resolve_config(None, "cpu", dict(env="franka_pick", actor="mlp", seed=2))
+    mlp = earlier_command(actor="mlp", seed=2)
     assert mlp.replace(actor="popsan", seed=0, actor_kwargs=command.actor_kwargs) == command
 
 
@@ -133,12 +162,12 @@ def test_readme_command_is_the_committed_4m_stage_runs():
     ]
     results = ROOT / "docs/results"
     for path, actor, seed in whole:
-        command = resolve_config(None, "cpu", dict(env="franka_pick", actor=actor, seed=seed))
+        command = earlier_command(actor=actor, seed=seed)
         assert RunConfig.from_json(results / path / "config.json") == command
         warm_up = RunConfig.from_json(results / path / "warmup/config.json")
         assert warm_up == warmup_config(command)
     for path, warm_path, source, actor, seed in split:
-        command = resolve_config(None, "cpu", dict(env="franka_pick", actor=actor, seed=seed))
+        command = earlier_command(actor=actor, seed=seed)
         stage = command.replace(init_from=source, init_checkpoint="last", warmup_env_steps=0)
         assert RunConfig.from_json(results / path / "config.json") == stage
         warm_up = RunConfig.from_json(results / warm_path / "config.json")
@@ -153,8 +182,7 @@ def test_readme_command_is_the_committed_climb_runs():
     for seed in (0, 1, 2):
         path = ROOT / f"docs/results/climb/popsan-climb-s{seed}/config.json"
         committed = RunConfig.from_json(path)
-        command = resolve_config(None, "cpu", dict(env="franka_pick", seed=seed))
-        command = command.replace(**SECOND_STAGE_2M)
+        command = earlier_command(seed=seed).replace(**SECOND_STAGE_2M)
         if seed == 1:  # rerun on 5 December with the plain command of revision 5
             assert committed == command
         else:
@@ -194,7 +222,10 @@ def test_documented_t2_fine_tune_is_the_committed_run():
         total_env_steps=4_000_000,
         num_evals=16,
     )
-    current = committed.replace(env_revision=CURRENT_ENV_REVISION)  # trained on revision 1
+    current = committed.replace(  # trained on revision 1, before the key (1.0: built the same)
+        env_revision=CURRENT_ENV_REVISION,
+        actor_kwargs={**committed.actor_kwargs, "decoder_init_scale": 1.0},
+    )
     for backend in ("cpu", "gpu"):
         assert resolve_config("paper", backend, flags, {"timesteps": 2}) == current, backend
 

@@ -11,6 +11,7 @@ from brax.training.agents.ppo import networks as ppo_networks
 from popsan_jax import Critic, MLPActor, actor_variables, make_actor, make_ppo_networks
 from popsan_jax.config import MLP_DEFAULTS
 from popsan_jax.errors import ConfigError
+from popsan_jax.recipes import ACTOR_RECIPES
 
 OBS, ACT = 7, 3
 SMALL = {
@@ -130,8 +131,8 @@ def test_json_style_list_kwargs_are_accepted():
 def test_mlp_output_layer_starts_scaled():
     # output_init_scale multiplies the output kernel's LeCun-normal draw (std 1/sqrt(fan_in));
     # the hidden layers and the zero bias are untouched, so with the same key the kernel is
-    # exactly that multiple of the default one. The default MLP (config.MLP_DEFAULTS) starts
-    # 100x smaller: its action means start near 0 for every observation.
+    # exactly that multiple of the default one. The default recipe's MLP (recipes.ACTOR_RECIPES)
+    # starts 100x smaller: its action means start near 0 for every observation.
     obs = jax.random.normal(jax.random.PRNGKey(1), (64, OBS))
     base = MLPActor(ACT, hidden_sizes=(256,)).init(jax.random.PRNGKey(0), obs)["params"]
     small = MLPActor(ACT, hidden_sizes=(256,), output_init_scale=0.01)
@@ -141,7 +142,7 @@ def test_mlp_output_layer_starts_scaled():
     np.testing.assert_allclose(kernel, 0.01 * np.asarray(base["output"]["kernel"]), rtol=1e-5)
     assert abs(np.std(base["output"]["kernel"]) * 16.0 - 1.0) < 0.1  # 1/sqrt(256)
     assert not np.any(params["output"]["bias"])
-    default = make_actor("mlp", MLP_DEFAULTS, ACT)
+    default = make_actor("mlp", {**MLP_DEFAULTS, **ACTOR_RECIPES["mlp"]}, ACT)
     means = default.apply(default.init(jax.random.PRNGKey(0), obs), obs)
     assert float(jnp.abs(means).max()) < 0.05
 

@@ -24,16 +24,22 @@ def torch_linear_init(fan_in: int) -> nn.initializers.Initializer:
 class PopulationDecoder(nn.Module):
     """Output spikes ``[T, B, action_size * pop_dim]`` -> action mean ``[B, action_size]``.
 
-    ``rate = count / T``; ``mean_a = tanh(sum_j w[a, j] * rate[a, j] + b[a])``.
+    ``rate = count / T``; ``mean_a = tanh(sum_j w[a, j] * rate[a, j] + b[a])``. ``w`` and ``b``
+    start at ``init_scale`` times their :func:`torch_linear_init` draw.
     """
 
     action_size: int
     pop_dim: int = 10
+    init_scale: float = 1.0
     dtype: jnp.dtype = jnp.float32
 
     @nn.compact
     def __call__(self, spikes: jax.Array) -> jax.Array:
-        init = torch_linear_init(self.pop_dim)
+        draw = torch_linear_init(self.pop_dim)
+
+        def init(key: jax.Array, shape: tuple[int, ...], dtype=jnp.float32) -> jax.Array:
+            return self.init_scale * draw(key, shape, dtype)
+
         weight = self.param("weight", init, (self.action_size, self.pop_dim))
         bias = self.param("bias", init, (self.action_size,))
         rates = jnp.mean(spikes, axis=0)

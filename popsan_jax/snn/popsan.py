@@ -78,7 +78,8 @@ class PopSAN(nn.Module):
     Params tree (``params["params"]``): ``encoder/{mean, std}`` ``[obs_dim, encoder_pop_dim]``;
     ``hidden_k/{kernel [N_in, N_out], bias}`` for k = 0..K-1; ``output/{kernel, bias}``;
     ``decoder/{weight [action_size, decoder_pop_dim], bias [action_size]}``. Params are float32;
-    computation runs in ``dtype``.
+    computation runs in ``dtype``. ``decoder_init_scale`` scales the decoder's initial draw (its
+    weights and biases), so that a small one starts the policy's mean near 0.
     """
 
     action_size: int
@@ -86,6 +87,7 @@ class PopSAN(nn.Module):
     encoder_pop_dim: int = 10
     decoder_pop_dim: int = 10
     timesteps: int = 5
+    decoder_init_scale: float = 1.0
     mean_range: tuple[float, float] = (-3.0, 3.0)
     std_init: float = 0.15**0.5
     dtype: jnp.dtype = jnp.float32
@@ -112,7 +114,11 @@ class PopSAN(nn.Module):
         first_currents, encoder_spikes = encode_and_project(activity, *synapses[0], self.timesteps)
         lif_spikes = run_lif_stack(first_currents, synapses[1:], self.lif)
         mean = PopulationDecoder(
-            self.action_size, self.decoder_pop_dim, dtype=self.dtype, name="decoder"
+            self.action_size,
+            self.decoder_pop_dim,
+            init_scale=self.decoder_init_scale,
+            dtype=self.dtype,
+            name="decoder",
         )(lif_spikes[-1])
         if return_spikes:
             return mean, (encoder_spikes, *lif_spikes)

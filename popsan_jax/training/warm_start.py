@@ -31,7 +31,7 @@ def warm_source(config: RunConfig, run_dir: str | Path) -> tuple[str, str] | Non
 
 
 # Actor kwargs a warm start may change: neither changes the parameters or what loaded ones do.
-FREE_ACTOR_KWARGS = frozenset({"timesteps", "output_init_scale"})
+FREE_ACTOR_KWARGS = frozenset({"timesteps", "output_init_scale", "decoder_init_scale"})
 
 
 def check_same_networks(theirs: RunConfig, ours: RunConfig, where: str) -> None:
@@ -50,7 +50,7 @@ def check_same_networks(theirs: RunConfig, ours: RunConfig, where: str) -> None:
             raise ConfigError(
                 f"cannot start from {where}: its actor {name} "
                 f"{theirs.actor_kwargs.get(name)!r} differs from this run's "
-                f"{ours.actor_kwargs.get(name)!r} (only {' and '.join(sorted(FREE_ACTOR_KWARGS))} "
+                f"{ours.actor_kwargs.get(name)!r} (only {', '.join(sorted(FREE_ACTOR_KWARGS))} "
                 "may differ)"
             )
 
@@ -64,8 +64,8 @@ def warm_start(
 
     The networks must match except in ``FREE_ACTOR_KWARGS``: PopSAN's ``timesteps`` (its
     parameters do not depend on ``T``), so a policy trained at one ``T`` can be fine-tuned at
-    another, and the MLP's ``output_init_scale`` (it only scales the initial draw, which the
-    loaded parameters replace). A mismatch raises
+    another, and the MLP's ``output_init_scale`` and PopSAN's ``decoder_init_scale`` (they only
+    scale the initial draw, which the loaded parameters replace). A mismatch raises
     ConfigError; a missing or damaged source raises CheckpointError.
     """
     where, which = source

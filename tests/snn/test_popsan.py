@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from _reference import lif_layer, regular_spike_train
 
-from popsan_jax import PopSAN
+from popsan_jax import PopSAN, make_actor
+from popsan_jax.config import POPSAN_DEFAULTS
 
 OBS, ACT, B = 6, 3, 16
 KW = dict(action_size=ACT, hidden_sizes=(32, 24), encoder_pop_dim=5, decoder_pop_dim=4, timesteps=5)
@@ -147,3 +148,36 @@ def test_other_depth_timesteps_and_dtype():
     assert mean.shape == (2, 2) and mean.dtype == jnp.bfloat16
     assert len(spikes) == 5 and all(s.shape[0] == 3 for s in spikes)
     assert params["params"]["hidden_0"]["kernel"].dtype == jnp.float32
+
+
+def test_decoder_starts_scaled():
+    # decoder_init_scale multiplies the decoder's U(-1/sqrt(pop), 1/sqrt(pop)) draw, weights and
+    # biases alike; with the same key every other layer is the same draw, so the output spikes
+    # are the same and the action mean is tanh of exactly the scaled decoder sum. At 0.01 the full
+    # PopSAN's action means start near 0 for every observation rather than at the paper draw's
+    # nearly constant offset (|mean| ~0.1-0.2).
+    obs = jax.random.normal(jax.random.PRNGKey(1), (64, OBS))
+    base_model = PopSAN(**KW)
+    base = base_model.init(jax.random.PRNGKey(0), obs)
+    small_model = PopSAN(**KW, decoder_init_scale=0.01)
+    small = small_model.init(jax.random.PRNGKey(0), obs)
+    for name in ("encoder", "hidden_0", "hidden_1", "output"):
+        for leaf, base_leaf in zip(
+            jax.tree.leaves(small["params"][name]),
+            jax.tree.leaves(base["params"][name]),
+            strict=True,
+        ):
+            np.testing.assert_array_equal(leaf, base_leaf)
+    dec, base_dec = small["params"]["decoder"], base["params"]["decoder"]
+    for part in ("weight", "bias"):
+        np.testing.assert_allclose(dec[part], 0.01 * np.asarray(base_dec[part]), rtol=1e-5)
+    assert float(np.abs(base_dec["weight"]).max()) > 0.3  # U(+-1/sqrt(4)): the paper's draw
+    _, spikes = small_model.apply(small, obs, return_spikes=True)
+    rates = np.asarray(spikes[-1]).mean(0).reshape(64, ACT, KW["decoder_pop_dim"])
+    expected = np.tanh((rates * np.asarray(dec["weight"])).sum(-1) + np.asarray(dec["bias"]))
+    np.testing.assert_allclose(small_model.apply(small, obs), expected, atol=1e-6)
+    full = make_actor("popsan", {**POPSAN_DEFAULTS, "decoder_init_scale": 0.01}, ACT)
+    means = full.apply(full.init(jax.random.PRNGKey(0), obs), obs)
+    assert float(jnp.abs(means).max()) < 0.01
+    paper = make_actor("popsan", POPSAN_DEFAULTS, ACT)
+    assert float(jnp.abs(paper.apply(paper.init(jax.random.PRNGKey(0), obs), obs)).mean()) > 0.03

@@ -61,7 +61,8 @@ def test_an_mlp_run_from_before_output_init_scale_can_be_started_from():
     check_same_networks(old, new, "runs/old")
     narrower = new.replace(actor_kwargs={**new.actor_kwargs, "hidden_sizes": (64,)})
     with pytest.raises(
-        ConfigError, match="actor hidden_sizes .*only output_init_scale and timesteps"
+        ConfigError,
+        match="actor hidden_sizes .*only decoder_init_scale, output_init_scale, timesteps",
     ):
         check_same_networks(old, narrower, "runs/old")
 
