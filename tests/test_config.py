@@ -175,6 +175,27 @@ def test_readme_command_is_the_committed_4m_stage_runs():
     assert command.total_env_steps == 4_000_000 and command.num_evals == 16
 
 
+def test_readme_command_today_is_the_committed_epyc_run_and_its_t2_fine_tune():
+    # docs/results.md, "The README's command on an AMD EPYC": the plain command as it reads now
+    # (seed 0, the decoder key recorded), and the documented T = 2 fine-tune started from it.
+    results = ROOT / "docs/results/stage4m"
+    command = resolve_config(None, "cpu", dict(env="franka_pick"))
+    assert RunConfig.from_json(results / "popsan-s0-epyc/config.json") == command
+    warm_up = RunConfig.from_json(results / "popsan-s0-epyc/warmup/config.json")
+    assert warm_up == warmup_config(command)
+    # Its configs differ from the 6 December run's only by the key that run predates.
+    assert command == earlier_command().replace(actor_kwargs=command.actor_kwargs)
+    # The fine-tune as docs/results.md writes it, parsed as train.py parses it.
+    text = (ROOT / "docs/results.md").read_text()
+    start = text.index("train.py --env franka_pick --warmup-env-steps 0 --name t2-s0")
+    line = text[start : text.index(".venv/bin/python eval.py", start)].replace("\\\n", " ")
+    args = train_parser().parse_args(line.split()[1:])
+    assert args.name == "t2-s0" and args.init_from == "runs/popsan-s0"
+    fine_tune = resolve_config(None, "cpu", *given_flags(args))
+    assert RunConfig.from_json(results / "popsan-t2-s0/config.json") == fine_tune
+    assert fine_tune.actor_kwargs["timesteps"] == 2 and fine_tune.warmup_env_steps == 0
+
+
 def test_readme_command_is_the_committed_climb_runs():
     # The three-seed headline (docs/results.md, "Revision 5") was trained on revision 4 with the
     # ramp and the climb term as overrides: the same run config as the README's command, and in
