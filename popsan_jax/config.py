@@ -137,6 +137,16 @@ class RunConfig:
     warmup_env_overrides: dict[str, Any] = dataclasses.field(default_factory=dict)
     warmup_actor_lr: float = _flag(1e-3, "actor learning rate of the warm-up stage")
     warmup_num_evals: int = _flag(24, "evaluations (and checkpoints) of the warm-up stage")
+    # Ending early (popsan_jax/training/loop.py): a run ends after its first training
+    # evaluation whose success rate reaches end_at_success (0: never); its last checkpoint is
+    # that evaluation's. warmup_end_at_success is the warm-up stage's: the run's own stage then
+    # starts as soon as the warm-up policy holds the cube (docs/design.md, "Ending the warm-up").
+    end_at_success: float = _flag(
+        0.0, "end the run at its first evaluation with at least this success rate (0: never)"
+    )
+    warmup_end_at_success: float = _flag(
+        0.0, "end the warm-up stage at its first evaluation with at least this success (0: never)"
+    )
     # Evaluation, checkpoints, logging.
     num_evals: int = _flag(10, "evaluations (and checkpoints) over the run")
     num_eval_envs: int = _flag(64, "episodes per evaluation")
@@ -202,6 +212,9 @@ class RunConfig:
             raise ConfigError(f"warmup_env_steps must be >= 0, got {self.warmup_env_steps}")
         if self.warmup_env_steps and (self.warmup_num_evals < 1 or not self.warmup_actor_lr > 0):
             raise ConfigError("a warm-up needs warmup_num_evals >= 1 and warmup_actor_lr > 0")
+        for name in ("end_at_success", "warmup_end_at_success"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ConfigError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if self.critic_warmup_env_steps < 0 or self.critic_warmup_iterations >= self.num_iterations:
             raise ConfigError(
                 f"critic_warmup_env_steps must be >= 0 and leave the actor at least one "

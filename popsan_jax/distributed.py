@@ -39,6 +39,7 @@ HEARTBEAT_TIMEOUT_S = 100  # jax.distributed's own default
 WAIT_S = 3600  # how long processes wait for process 0 at a barrier (evaluation, checkpoint)
 _ADDRESS = re.compile(r"\[?[A-Za-z0-9_.:-]+\]?:\d{1,5}")
 _barriers = itertools.count()
+_shares = itertools.count()
 
 
 class PeerLostError(UserError):
@@ -174,7 +175,9 @@ def share_from_main(name: str, compute: Callable[[], Any]) -> Any:
     """
     if jax.process_count() == 1:
         return compute()
-    key = f"popsan_jax/{name}"
+    # numbered like the barriers: every process shares in the same order, and a name may recur
+    # (each evaluation; both stages of a run with a warm-up)
+    key = f"popsan_jax/{name}/{next(_shares)}"
     if not is_main():
         message = json.loads(_client().blocking_key_value_get(key, WAIT_S * 1000))
         if "error" in message:
@@ -188,6 +191,11 @@ def share_from_main(name: str, compute: Callable[[], Any]) -> Any:
         raise
     _client().key_value_set(key, json.dumps({"value": value}))
     return value
+
+
+def share_value_from_main(name: str, value: Any) -> Any:
+    """Process 0's ``value`` (JSON-able) on every process; the others' ``value`` is ignored."""
+    return share_from_main(name, lambda: value)
 
 
 def barrier(name: str, timeout_s: float = WAIT_S) -> None:

@@ -276,6 +276,9 @@ def test_validate_messages():
         RunConfig(unroll_length=0).validate()
     with pytest.raises(ConfigError, match="unknown preset"):
         resolve_config("huge")
+    for name in ("end_at_success", "warmup_end_at_success"):
+        with pytest.raises(ConfigError, match=rf"{name} must be in \[0, 1\], got 1.5"):
+            RunConfig(**{name: 1.5}).validate()
     # A frozen normaliser needs statistics to keep: a warm start or a warm-up stage, whose own
     # stage (from scratch) then updates its normaliser as usual.
     with pytest.raises(ConfigError, match="freeze_normalizer needs a started normaliser"):

@@ -161,7 +161,9 @@ def train(
     The run's lock (popsan_jax/training/run_dir.py) is held throughout: a second trainer on it
     is refused. A resumed run first writes its config (a new ``total_env_steps`` is kept even
     if it is killed again); a resumed run with no checkpoint yet trains again from step 0; a
-    resumed run that is already finished returns at once with ``finished``. A failed write
+    resumed run that is already finished returns at once with ``finished``. A run with
+    ``end_at_success`` ends after its first evaluation that reaches it, which also counts as
+    finished on resume. A failed write
     (disk full, read-only) is one CheckpointError line naming the last good checkpoint.
 
     Under jax.distributed every process calls this with the same arguments; process 0 alone
@@ -199,8 +201,13 @@ def train(
             _note(f"note: {run_dir} has no checkpoint yet; training it again from step 0")
         elif resume:
             state, key, entry = checkpoint.restore_checkpoint(run_dir, state, "last")
-            return {"eval_index": entry["eval_index"], "restart": False, "resume": True}
-        return {"eval_index": 0, "restart": restart, "resume": False}
+            return {
+                "eval_index": entry["eval_index"],
+                "restart": False,
+                "resume": True,
+                "ended": _reached_end(config, entry["success_rate"]),
+            }
+        return {"eval_index": 0, "restart": restart, "resume": False, "ended": False}
 
     try:
         started = distributed.share_from_main("started", start)
@@ -208,7 +215,8 @@ def train(
         # NumPy on every process: one set of types (no weak types), so a resumed run compiles
         # the iteration for the same types as a new one.
         state, key = distributed.broadcast_from_main((state, key))
-        if int(state.env_steps) >= config.num_iterations * config.env_steps_per_iteration:
+        total = config.num_iterations * config.env_steps_per_iteration
+        if int(state.env_steps) >= total or started["ended"]:
             return TrainResult(state=state, key=key, last_eval=None, run_dir=run_dir, finished=True)
         return _train_started(t, config, run_dir, state, key, started, progress, on_iteration)
     except OSError as e:  # ENOSPC, EROFS... writing the config, the metrics or TensorBoard's log
@@ -217,6 +225,11 @@ def train(
         raise checkpoint_index.write_error(run_dir, e) from e
     finally:
         lock.release()
+
+
+def _reached_end(config: RunConfig, success_rate: float) -> bool:
+    """Whether an evaluation of ``success_rate`` ends a run of ``config`` (end_at_success)."""
+    return bool(config.end_at_success) and success_rate >= config.end_at_success
 
 
 def _note(text: str) -> None:
@@ -325,17 +338,21 @@ def _train_started(
             state = _unreplicate(state_r)
             key, key_eval = jax.random.split(key)
             eval_index += 1
+            rate = None
             if main:
                 last_eval = logger.log("eval", steps, evaluate(state, key_eval))
+                rate = last_eval["success_rate"]
                 checkpoint.save_checkpoint(
-                    run_dir,
-                    state,
-                    key,
-                    eval_index,
-                    last_eval["success_rate"],
-                    config.keep_every_n_evals,
+                    run_dir, state, key, eval_index, rate, config.keep_every_n_evals
                 )
-            distributed.barrier("evaluated")  # the others wait here, not in a collective
+            # the others wait here for process 0's figure, not in a collective
+            rate = distributed.share_value_from_main("evaluated", rate)
+            if _reached_end(config, rate) and it + 1 < config.num_iterations:
+                logger.message(
+                    f"ended at env step {steps}: evaluation success {rate:.3f} reached "
+                    f"end_at_success {config.end_at_success:g}"
+                )
+                break
         final = _unreplicate(state_r)
     finally:
         with contextlib.suppress(OSError):  # a full disk: the error in flight says so

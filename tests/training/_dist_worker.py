@@ -5,7 +5,7 @@
 
 ``cli`` runs train.py itself (its flags, exit codes and one-line errors); with
 ``--die-after-first-checkpoint`` the process SIGKILLs itself once the first checkpoint after
-step 0 is written and every process has passed the barrier behind it, so the loss of a peer
+step 0 is written and process 0 has shared that evaluation's figure, so the loss of a peer
 always falls at the same point of the run. ``state`` follows train.py's path (cluster,
 initialize, shared config, loop.train) and saves this process's final state to
 ``OUT/state_p<process index>.npz``.
@@ -47,14 +47,15 @@ def toy_env(config):
 
 
 def die_after_first_checkpoint() -> None:
-    barrier = distributed.barrier
+    share = distributed.share_value_from_main
 
-    def barrier_then_die(name, *args, **kwargs):
-        barrier(name, *args, **kwargs)
-        if name == "evaluated":  # process 0 wrote the checkpoint before this barrier
+    def share_then_die(name, *args, **kwargs):
+        value = share(name, *args, **kwargs)
+        if name == "evaluated":  # process 0 wrote the checkpoint before it shared its figure
             os.kill(os.getpid(), signal.SIGKILL)
+        return value
 
-    distributed.barrier = barrier_then_die
+    distributed.share_value_from_main = share_then_die
 
 
 def save_final_state(out: Path, argv: list[str]) -> None:

@@ -1,6 +1,6 @@
 """A run with a warm-up stage (popsan_jax/training/stages.py): layout, resume of an interrupted
 warm-up, the run's own stage starting from the warm-up's last checkpoint, the learning curve's
-env steps counting both stages."""
+env steps counting both stages, a warm-up ended early by its success (end_at_success)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,8 @@ from popsan_jax.analysis.plots import read_run_curves
 from popsan_jax.config import RunConfig
 from popsan_jax.errors import ConfigError
 from popsan_jax.training.checkpoint import load_run
+from popsan_jax.training.checkpoint_index import read_index
+from popsan_jax.training.loop import train
 from popsan_jax.training.run import interrupted_message
 from popsan_jax.training.run_log import read_metrics
 from popsan_jax.training.stages import train_run, warmup_config
@@ -104,3 +106,42 @@ def test_bad_warm_up_is_refused_before_anything_is_written(tmp_path):
     with pytest.raises(ConfigError, match="warmup_env_steps must be >= 0"):
         train_run(config, tmp_path / "bad", environment=PointPick(), progress=False)
     assert not (tmp_path / "bad").exists()
+
+
+def test_warm_up_ends_at_its_first_evaluation_that_reaches_its_success(tmp_path):
+    # success_radius 10 m: every episode succeeds from its first step, so the warm-up's first
+    # evaluation after an update (1.0) reaches warmup_end_at_success and ends it: one of its four
+    # iterations, its last checkpoint that evaluation's. Killed between the stages (the warm-up
+    # trained alone), the resumed run must not train the ended warm-up again.
+    config = tiny_config(
+        total_env_steps=STEPS,
+        num_evals=1,
+        warmup_env_steps=4 * STEPS,
+        warmup_num_evals=4,
+        warmup_end_at_success=0.5,
+    )
+    assert warmup_config(config).end_at_success == 0.5
+    assert warmup_config(config).warmup_end_at_success == 0.0
+    always = PointPick(success_radius=10.0)
+    run = tmp_path / "staged"
+    run.mkdir()
+    config.to_json(run / "config.json")
+    warm = train(warmup_config(config), run / "warmup", environment=always, progress=False)
+    assert not warm.finished and int(warm.state.env_steps) == STEPS
+    assert [r["env_steps"] for r in read_metrics(run / "warmup", "train")] == [STEPS]
+    assert [r["success_rate"] for r in read_metrics(run / "warmup", "eval")] == [1.0, 1.0]
+    assert [e["step"] for e in read_index(run / "warmup")["checkpoints"]] == [STEPS]
+
+    result = train_run(config, run, resume=True, environment=always, progress=False)
+    assert len(read_metrics(run / "warmup", "train")) == 1  # the ended warm-up stays ended
+    assert [r["env_steps"] for r in read_metrics(run, "train")] == [STEPS]
+    assert int(result.state.env_steps) == STEPS
+    assert read_run_curves(run).warmup_steps == STEPS  # the warm-up's cost is what it ran
+
+
+def test_a_run_that_never_reaches_end_at_success_runs_to_its_end(tmp_path):
+    never = PointPick(success_radius=0.0)  # no distance is below 0
+    config = tiny_config(total_env_steps=3 * STEPS, num_evals=3, end_at_success=0.01)
+    result = train(config, tmp_path / "run", environment=never, progress=False)
+    assert int(result.state.env_steps) == 3 * STEPS
+    assert [r["success_rate"] for r in read_metrics(tmp_path / "run", "eval")] == [0.0] * 4
