@@ -163,8 +163,8 @@ def train(
     if it is killed again); a resumed run with no checkpoint yet trains again from step 0; a
     resumed run that is already finished returns at once with ``finished``. A run with
     ``end_at_success`` ends after its first evaluation that reaches it, which also counts as
-    finished on resume. A failed write
-    (disk full, read-only) is one CheckpointError line naming the last good checkpoint.
+    finished on resume. A failed write (disk full, read-only) is one CheckpointError line
+    naming the last good checkpoint.
 
     Under jax.distributed every process calls this with the same arguments; process 0 alone
     touches ``run_dir`` (lock, checks, restore, config, metrics, evaluation, checkpoints) and
