@@ -21,7 +21,9 @@ from popsan_jax.training.checkpoint_index import (
 )
 from popsan_jax.training.run_dir import check_name, check_runs_dir
 
-RESUMABLE = {"total_env_steps"}  # the only field a resumed run may change
+# The fields a resumed run may change: its length, and whether it ends at a success (so a run
+# that ended at one can be trained on to its end with --end-at-success 0).
+RESUMABLE = {"total_env_steps", "end_at_success"}
 
 
 def resume_config(
@@ -43,7 +45,9 @@ def resume_config(
     bad = sorted(set(given) - RESUMABLE) + sorted(actor_given or {})
     if bad or preset or env_overrides:
         extra = ", ".join(bad) or "preset/env overrides"
-        raise ConfigError(f"cannot change {extra} when resuming (only --total-env-steps)")
+        raise ConfigError(
+            f"cannot change {extra} when resuming (only --total-env-steps, --end-at-success)"
+        )
     if index_path(run_dir).exists() or not (run_dir / CONFIG).is_file():
         read_index(run_dir)  # fails early with a clear CheckpointError
     try:
@@ -111,7 +115,8 @@ def done_message(result: Any, run_dir: Path | None, process: int, processes: int
     if result.finished:  # resumed a run that had already reached its total
         return (
             f"done: {run_dir} already finished at {steps} env steps; to train further: "
-            f"python train.py --resume {run_dir} --total-env-steps N (N > {steps})"
+            f"python train.py --resume {run_dir} --total-env-steps N (N > {steps}), or "
+            "--end-at-success 0 if it ended at a success"
         )
     final = result.last_eval or {}
     return (

@@ -1,6 +1,7 @@
 """A run with a warm-up stage (popsan_jax/training/stages.py): layout, resume of an interrupted
 warm-up, the run's own stage starting from the warm-up's last checkpoint, the learning curve's
-env steps counting both stages, a warm-up ended early by its success (end_at_success)."""
+env steps counting both stages, a warm-up ended early by its success (end_at_success), a run
+ended at a success trained on to its end by resuming it with end_at_success 0."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from popsan_jax.errors import ConfigError
 from popsan_jax.training.checkpoint import load_run
 from popsan_jax.training.checkpoint_index import read_index
 from popsan_jax.training.loop import train
-from popsan_jax.training.run import interrupted_message
+from popsan_jax.training.run import interrupted_message, resume_config
 from popsan_jax.training.run_log import read_metrics
 from popsan_jax.training.stages import train_run, warmup_config
 
@@ -145,3 +146,23 @@ def test_a_run_that_never_reaches_end_at_success_runs_to_its_end(tmp_path):
     result = train(config, tmp_path / "run", environment=never, progress=False)
     assert int(result.state.env_steps) == 3 * STEPS
     assert [r["success_rate"] for r in read_metrics(tmp_path / "run", "eval")] == [0.0] * 4
+
+
+def test_a_run_ended_at_a_success_resumed_with_end_at_success_0_trains_to_its_end(tmp_path):
+    always = PointPick(success_radius=10.0)  # every evaluation is 1.0
+    run = tmp_path / "run"
+    ended = train(
+        tiny_config(total_env_steps=3 * STEPS, num_evals=3, end_at_success=0.5),
+        run,
+        environment=always,
+        progress=False,
+    )
+    assert int(ended.state.env_steps) == STEPS  # ended at its first evaluation after an update
+    again = train(resume_config(run, {}), run, resume=True, environment=always, progress=False)
+    assert again.finished and int(again.state.env_steps) == STEPS  # still ended
+    config = resume_config(run, {"end_at_success": 0.0})
+    assert config.end_at_success == 0.0
+    result = train(config, run, resume=True, environment=always, progress=False)
+    assert not result.finished and int(result.state.env_steps) == 3 * STEPS
+    assert [r["env_steps"] for r in read_metrics(run, "train")] == [STEPS, 2 * STEPS, 3 * STEPS]
+    assert RunConfig.from_json(run / "config.json").end_at_success == 0.0  # kept if killed again
