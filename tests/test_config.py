@@ -185,10 +185,13 @@ def test_readme_command_today_is_the_committed_epyc_run_and_its_t2_fine_tune():
     assert warm_up == warmup_config(command)
     # Its configs differ from the 6 December run's only by the key that run predates.
     assert command == earlier_command().replace(actor_kwargs=command.actor_kwargs)
-    # The reference checkpoint of the README's command (docs/reference/README.md) is that run.
-    reference = ROOT / "docs/reference/readme-popsan-s0"
-    assert RunConfig.from_json(reference / "config.json") == command
-    assert RunConfig.from_json(reference / "warmup/config.json") == warmup_config(command)
+    # The reference checkpoints of the README's command (docs/reference/README.md): that run,
+    # and the same command with --actor mlp.
+    mlp = resolve_config(None, "cpu", dict(env="franka_pick", actor="mlp"))
+    for name, config in (("readme-popsan-s0", command), ("readme-mlp-s0", mlp)):
+        reference = ROOT / "docs/reference" / name
+        assert RunConfig.from_json(reference / "config.json") == config
+        assert RunConfig.from_json(reference / "warmup/config.json") == warmup_config(config)
     # The fine-tune as docs/results.md writes it, parsed as train.py parses it.
     text = (ROOT / "docs/results.md").read_text()
     start = text.index("train.py --env franka_pick --warmup-env-steps 0 --name t2-s0")
