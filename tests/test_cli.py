@@ -187,13 +187,18 @@ def test_done_line_of_each_process():
         run.done_message(main, run_dir, 0, 2)
         == "done: 1280 env steps, success rate 0.250 -> runs/r"
     )
-    for result in (other, SimpleNamespace(state=state, finished=True, last_eval=None)):
+    for result in (other, SimpleNamespace(state=state, finished=True, ended=False, last_eval=None)):
         line = run.done_message(result, run_dir, 1, 2)
         assert (
             line == "done: process 1 of 2 (1280 env steps); process 0 holds the results -> runs/r"
         )
     assert "already finished at 1280" in run.done_message(
-        SimpleNamespace(state=state, finished=True, last_eval=None), run_dir, 0, 1
+        SimpleNamespace(state=state, finished=True, ended=False, last_eval=None), run_dir, 0, 1
+    )
+    ended = SimpleNamespace(state=state, finished=True, ended=True, last_eval=None)
+    assert run.done_message(ended, run_dir, 0, 1) == (
+        "done: runs/r already ended at 1280 env steps (an evaluation reached its "
+        "end_at_success); to train it on: python train.py --resume runs/r --end-at-success 0"
     )
 
 

@@ -53,13 +53,15 @@ from popsan_jax.training.warm_start import warm_source, warm_start
 @dataclasses.dataclass
 class TrainResult:
     """What :func:`train` hands back: final (un-replicated) state and the last eval record;
-    ``finished`` when a resumed run had already reached its ``total_env_steps``."""
+    ``finished`` when a resumed run had already reached its ``total_env_steps`` or ended at an
+    evaluation that reached ``end_at_success`` (then also ``ended``)."""
 
     state: TrainingState
     key: jax.Array
     last_eval: dict[str, Any] | None
     run_dir: Path
     finished: bool = False
+    ended: bool = False
 
 
 @dataclasses.dataclass
@@ -215,9 +217,16 @@ def train(
         # NumPy on every process: one set of types (no weak types), so a resumed run compiles
         # the iteration for the same types as a new one.
         state, key = distributed.broadcast_from_main((state, key))
-        total = config.num_iterations * config.env_steps_per_iteration
-        if int(state.env_steps) >= total or started["ended"]:
-            return TrainResult(state=state, key=key, last_eval=None, run_dir=run_dir, finished=True)
+        at_total = int(state.env_steps) >= config.num_iterations * config.env_steps_per_iteration
+        if at_total or started["ended"]:
+            return TrainResult(
+                state=state,
+                key=key,
+                last_eval=None,
+                run_dir=run_dir,
+                finished=True,
+                ended=not at_total,
+            )
         return _train_started(t, config, run_dir, state, key, started, progress, on_iteration)
     except OSError as e:  # ENOSPC, EROFS... writing the config, the metrics or TensorBoard's log
         if not main:

@@ -112,11 +112,16 @@ def done_message(result: Any, run_dir: Path | None, process: int, processes: int
             f"done: process {process} of {processes} ({steps} env steps); process 0 holds the "
             f"results -> {run_dir}"
         )
+    if result.finished and result.ended:  # resumed a run that ended at its end_at_success
+        return (
+            f"done: {run_dir} already ended at {steps} env steps (an evaluation reached its "
+            f"end_at_success); to train it on: python train.py --resume {run_dir} "
+            "--end-at-success 0"
+        )
     if result.finished:  # resumed a run that had already reached its total
         return (
             f"done: {run_dir} already finished at {steps} env steps; to train further: "
-            f"python train.py --resume {run_dir} --total-env-steps N (N > {steps}), or "
-            "--end-at-success 0 if it ended at a success"
+            f"python train.py --resume {run_dir} --total-env-steps N (N > {steps})"
         )
     final = result.last_eval or {}
     return (

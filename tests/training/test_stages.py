@@ -159,7 +159,7 @@ def test_a_run_ended_at_a_success_resumed_with_end_at_success_0_trains_to_its_en
     )
     assert int(ended.state.env_steps) == STEPS  # ended at its first evaluation after an update
     again = train(resume_config(run, {}), run, resume=True, environment=always, progress=False)
-    assert again.finished and int(again.state.env_steps) == STEPS  # still ended
+    assert again.finished and again.ended and int(again.state.env_steps) == STEPS  # still ended
     config = resume_config(run, {"end_at_success": 0.0})
     assert config.end_at_success == 0.0
     result = train(config, run, resume=True, environment=always, progress=False)
