@@ -94,6 +94,20 @@ class RunConfig:
     critic_lr: float = _flag(1e-3, "critic learning rate")
     lr_schedule: str = _flag("constant", "constant | cosine")
     max_grad_norm: float | None = _flag(1.0, "global gradient-norm clip")
+    # Clip the actor's and the critic's gradients by max_grad_norm each, not by their joint
+    # norm: a critic that starts far from this reward (a warm start) has gradients that set the
+    # joint clip, so the actor's step size then follows the critic's loss (docs/design.md,
+    # "Guards at the stage change").
+    clip_per_network: bool = _flag(
+        False, "clip the actor's and the critic's gradients each by max_grad_norm: true | false"
+    )
+    # KL guard (popsan_jax/training/iteration.py): an iteration's SGD stops at its first
+    # minibatch whose policy, before its step, is further than max_kl (mean KL per action
+    # distribution) from the policy that collected the data, and keeps the last parameters
+    # that were measured within it. 0: off.
+    max_kl: float = _flag(
+        0.0, "stop an iteration's SGD at the first minibatch whose KL exceeds this (0: off)"
+    )
     # PPO loss.
     entropy_cost: float = _flag(1e-3, "entropy bonus coefficient")
     discounting: float = _flag(0.97, "discount gamma")
@@ -212,6 +226,8 @@ class RunConfig:
             raise ConfigError(f"warmup_env_steps must be >= 0, got {self.warmup_env_steps}")
         if self.warmup_env_steps and (self.warmup_num_evals < 1 or not self.warmup_actor_lr > 0):
             raise ConfigError("a warm-up needs warmup_num_evals >= 1 and warmup_actor_lr > 0")
+        if not (self.max_kl >= 0 and math.isfinite(self.max_kl)):
+            raise ConfigError(f"max_kl must be a finite number >= 0 (0: off), got {self.max_kl}")
         for name in ("end_at_success", "warmup_end_at_success"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ConfigError(f"{name} must be in [0, 1], got {getattr(self, name)}")

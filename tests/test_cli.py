@@ -24,13 +24,14 @@ ROOT = Path(__file__).resolve().parent.parent
 eval_cli = load_script("eval")
 
 # train.py's config flags before they were derived from RunConfig (the hand-written table),
-# and the warm-up, priming, critic warm-up and frozen-normaliser flags since.
+# and the warm-up, priming, critic warm-up, frozen-normaliser and guard flags since.
 HAND_TABLE = """env actor seed num_envs total_env_steps episode_length unroll_length batch_size
 num_minibatches num_updates_per_batch actor_lr critic_lr lr_schedule max_grad_norm entropy_cost
 discounting gae_lambda clipping_epsilon reward_scaling obs_clip init_log_std critic_hidden_sizes
 sop_cost sop_budget init_from init_checkpoint num_evals num_eval_envs keep_every_n_evals
 warmup_env_steps warmup_actor_lr warmup_num_evals prime_normalizer_episodes
-critic_warmup_env_steps freeze_normalizer end_at_success warmup_end_at_success""".split()
+critic_warmup_env_steps freeze_normalizer end_at_success warmup_end_at_success clip_per_network
+max_kl""".split()
 
 
 def test_config_flags_are_the_run_config_fields_with_their_types():

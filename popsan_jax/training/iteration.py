@@ -195,6 +195,41 @@ def prime_normalizer(
     return normalizer_params, env_state
 
 
+Guard = tuple[jax.Array, tuple[Any, Any]]  # (stopped, good (params, opt_state))
+
+
+def kl_guard(
+    kl: jax.Array, max_kl: float, guard: Guard, before: tuple[Any, Any], stepped: tuple[Any, Any]
+) -> tuple[tuple[Any, Any], Guard]:
+    """One minibatch of the KL guard (``config.max_kl``).
+
+    A warm start's first updates, driven by a critic fitted to another reward, can move the
+    policy by a KL of 1 or more in one iteration and undo it (docs/design.md, "Guards at the
+    stage change"). The guard keeps an iteration's SGD within ``max_kl`` of the policy that
+    collected its data, as far as the minibatches measure it.
+
+    Args:
+      kl: scalar, the minibatch's mean KL from the behaviour policy to ``before``'s policy
+        (Brax's ``kl_mean``, measured before the step).
+      max_kl: the bound.
+      guard: ``(stopped, good)``: whether this iteration's SGD has stopped, and the last
+        ``(params, opt_state)`` measured within ``max_kl`` (the iteration's start at first).
+      before: ``(params, opt_state)`` before this minibatch's step; ``stepped``: after it.
+
+    Returns:
+      ``((params, opt_state), guard)``: while every KL so far is ``<= max_kl`` the step is
+      kept and ``before`` becomes ``good``; at the first that is not (NaN included) the state
+      goes back to ``good`` and stays there for the rest of the iteration.
+    """
+    stopped, good = guard
+    fine = jnp.logical_and(jnp.logical_not(stopped), kl <= max_kl)
+
+    def pick(if_fine: Any, otherwise: Any) -> Any:
+        return jax.tree.map(lambda a, b: jnp.where(fine, a, b), if_fine, otherwise)
+
+    return pick(stepped, good), (jnp.logical_not(fine), pick(before, good))
+
+
 def make_iteration_fn(
     config: RunConfig,
     env: Any,
@@ -210,8 +245,9 @@ def make_iteration_fn(
 
     ``env`` is the training-wrapped (vmapped, auto-reset) env; ``diagnostics_fn(state, obs [B,
     O]) -> metrics`` adds entropy / firing rates. Under pmap, gradients and normaliser statistics
-    are averaged over ``axis_name``. Returns per-iteration mean metrics plus ``finite`` (1.0 when
-    loss and parameters are all finite).
+    are averaged over ``axis_name``. Returns per-iteration mean metrics plus ``kl_max`` (the
+    largest minibatch KL), ``finite`` (1.0 when loss and parameters are all finite) and, with
+    ``config.max_kl`` (:func:`kl_guard`), ``kl_stopped`` (1.0 when the guard stopped its SGD).
     """
     make_policy = ppo_networks.make_inference_fn(networks)
     loss_fn = loss.make_loss_fn(config, networks, env.action_size)
@@ -219,27 +255,34 @@ def make_iteration_fn(
     minibatches = config.num_minibatches
 
     def minibatch_step(carry, data, normalizer_params):
-        opt_state, params, key = carry
+        opt_state, params, key, guard = carry
         key, key_loss = jax.random.split(key)
-        (_, metrics), params, opt_state = update(
+        (_, metrics), new_params, new_opt_state = update(
             params, normalizer_params, data, key_loss, optimizer_state=opt_state
         )
-        return (opt_state, params, key), metrics
+        if guard is not None:  # config.max_kl > 0
+            kl = metrics["kl_mean"]
+            if axis_name is not None:  # every device takes the same decision
+                kl = jax.lax.pmean(kl, axis_name)
+            (new_params, new_opt_state), guard = kl_guard(
+                kl, config.max_kl, guard, (params, opt_state), (new_params, new_opt_state)
+            )
+        return (new_opt_state, new_params, key, guard), metrics
 
     def epoch(carry, _, data, normalizer_params):
-        opt_state, params, key = carry
+        opt_state, params, key, guard = carry
         key, key_perm, key_grad = jax.random.split(key, 3)
 
         def shuffle(x: jax.Array) -> jax.Array:
             x = jax.random.permutation(key_perm, x)
             return jnp.reshape(x, (minibatches, -1) + x.shape[1:])
 
-        (opt_state, params, _), metrics = jax.lax.scan(
+        (opt_state, params, _, guard), metrics = jax.lax.scan(
             functools.partial(minibatch_step, normalizer_params=normalizer_params),
-            (opt_state, params, key_grad),
+            (opt_state, params, key_grad, guard),
             jax.tree.map(shuffle, data),
         )
-        return (opt_state, params, key), metrics
+        return (opt_state, params, key, guard), metrics
 
     def iteration(state: TrainingState, env_state: Any, key: jax.Array):
         key_sgd, key_unroll, key_reset = jax.random.split(key, 3)
@@ -265,9 +308,12 @@ def make_iteration_fn(
             normalizer = running_statistics.update(
                 normalizer, data.observation, pmap_axis_name=axis_name
             )
-        (opt_state, params, _), metrics = jax.lax.scan(
+        guard = None
+        if config.max_kl:
+            guard = (jnp.array(False), (state.params, state.opt_state))
+        (opt_state, params, _, guard), metrics = jax.lax.scan(
             functools.partial(epoch, data=data, normalizer_params=normalizer),
-            (state.opt_state, state.params, key_sgd),
+            (state.opt_state, state.params, key_sgd, guard),
             (),
             length=config.num_updates_per_batch,
         )
@@ -288,6 +334,9 @@ def make_iteration_fn(
         if config.sop_cost:  # the penalised SOPs of the minibatches, before each update
             out["loss/sop_penalty"] = metrics["sop_penalty"]
         out = {k: jnp.mean(v) for k, v in out.items()}
+        out["kl_max"] = jnp.max(metrics["kl_mean"])  # the largest minibatch's, before its step
+        if guard is not None:  # 1.0 when the KL guard stopped this iteration's SGD
+            out["kl_stopped"] = guard[0].astype(jnp.float32)
         out["train/reward_per_step"] = jnp.mean(data.reward)
         obs_sample = data.observation[: min(256, data.observation.shape[0]), 0]
         out.update(diagnostics_fn(new_state, obs_sample))

@@ -88,7 +88,8 @@ def make_spikes_fn(config: RunConfig, action_size: int) -> SpikesFn:
 
 def make_optimizer(config: RunConfig) -> optax.GradientTransformation:
     """Adam with separate actor / critic learning rates (the PopSAN paper's 1e-5 / 1e-4 split),
-    optional cosine decay over the whole run, and optional global grad-norm clipping.
+    optional cosine decay over the whole run, and optional grad-norm clipping: of the joint
+    gradient, or (``clip_per_network``) of the actor's and the critic's each.
 
     With a critic warm-up the actor's rate is 0 for its first updates and its schedule (the
     cosine decay included) runs over the remaining ones."""
@@ -111,13 +112,16 @@ def make_optimizer(config: RunConfig) -> optax.GradientTransformation:
             value=jax.tree.map(lambda _: "critic", params.value),
         )
 
+    def adam(rate: optax.ScalarOrSchedule) -> optax.GradientTransformation:
+        if config.clip_per_network and config.max_grad_norm is not None:
+            # inside multi_transform, the norm is of this network's gradients alone
+            return optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(rate))
+        return optax.adam(rate)
+
     split = optax.multi_transform(
-        {
-            "actor": optax.adam(lr(config.actor_lr, frozen)),
-            "critic": optax.adam(lr(config.critic_lr)),
-        },
+        {"actor": adam(lr(config.actor_lr, frozen)), "critic": adam(lr(config.critic_lr))},
         labels,
     )
-    if config.max_grad_norm is None:
+    if config.max_grad_norm is None or config.clip_per_network:
         return split
     return optax.chain(optax.clip_by_global_norm(config.max_grad_norm), split)

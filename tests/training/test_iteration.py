@@ -69,13 +69,15 @@ def test_counts_steps_observations_and_updates(one_iteration):
 
 def test_logs_losses_diagnostics_and_finite(one_iteration):
     *_, metrics = one_iteration
-    keys = {"loss/total", "loss/policy", "loss/value", "loss/entropy", "kl", "entropy"}
+    keys = {"loss/total", "loss/policy", "loss/value", "loss/entropy", "kl", "kl_max", "entropy"}
     keys |= {"train/reward_per_step", "loss/sop_penalty", "sops", "finite"}
     keys |= {f"firing_rate/{n}" for n in ("encoder", "hidden_0", "output")}
     assert keys <= set(metrics), sorted(metrics)
     assert metrics["finite"] == 1.0
     assert all(np.isfinite(float(v)) for v in metrics.values())
     assert metrics["loss/sop_penalty"] > 0 and metrics["sops"] > 0
+    assert metrics["kl_max"] > metrics["kl"] > 0  # the largest minibatch's KL, and their mean
+    assert "kl_stopped" not in metrics  # no KL guard (max_kl 0)
     for name in ("encoder", "hidden_0", "output"):
         assert 0.0 <= metrics[f"firing_rate/{name}"] <= 1.0
     # The toy reward is minus the hand-object distance (and an action cost): negative.
@@ -183,3 +185,56 @@ def test_frozen_normalizer_keeps_the_started_statistics_and_the_actor_learns():
     assert any(moved(state.params.value, new.params.value))
     # the 64 it started with, none of the 640 collected
     assert int(new.normalizer_params.count) == 64
+
+
+def test_kl_guard_keeps_steps_until_the_first_kl_over_the_bound_then_the_last_good_state():
+    """Hand-traced: states are numbers, a step adds 1. KLs 0.1, 0.2 pass (steps kept: 0 -> 1
+    -> 2); 0.6 > 0.5 is measured on state 2, so the state goes back to 1, the last measured
+    within the bound, and stays there although the next KL, 0.1, passes."""
+    guard = (jnp.array(False), (jnp.float32(0), jnp.float32(0)))
+    state, trace = (jnp.float32(0), jnp.float32(0)), []
+    for kl in (0.1, 0.2, 0.6, 0.1):
+        stepped = (state[0] + 1, state[1] + 1)
+        state, guard = iteration.kl_guard(jnp.float32(kl), 0.5, guard, state, stepped)
+        trace.append((float(state[0]), bool(guard[0])))
+    assert trace == [(1.0, False), (2.0, False), (1.0, True), (1.0, True)]
+    # A NaN KL counts as over the bound; at the first minibatch that is the iteration's start.
+    start = (jnp.float32(3), jnp.float32(3))
+    fresh = (jnp.array(False), start)
+    state, guard = iteration.kl_guard(jnp.float32(jnp.nan), 0.5, fresh, start, (4.0, 4.0))
+    assert float(state[0]) == 3.0 and bool(guard[0])
+
+
+@pytest.fixture(scope="module")
+def guarded_iterations():
+    """One iteration (the one_iteration fixture's config and key) with the KL guard at a bound
+    no minibatch reaches, and one at a bound every step exceeds."""
+    out = {}
+    for name, bound in (("loose", 1e9), ("tight", 1e-30)):
+        step, state, env_state = _start(tiny_config(sop_cost=0.5, max_kl=bound))
+        new, _, metrics = step(state, env_state, jax.random.PRNGKey(2))
+        out[name] = (state, new, jax.device_get(metrics))
+    return out
+
+
+def test_kl_guard_never_reached_changes_nothing(one_iteration, guarded_iterations):
+    """A bound no minibatch reaches gives the unguarded iteration's state, to float rounding:
+    XLA fuses the guarded program differently, which moves a few values by an ulp or so
+    (not bit for bit), while one step more or less would move them by about the lr, 3e-4."""
+    _, _, unguarded, _, plain_metrics = one_iteration
+    _, new, metrics = guarded_iterations["loose"]
+    for a, b in ((unguarded.params, new.params), (unguarded.opt_state, new.opt_state)):
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-8)
+    assert metrics["kl_stopped"] == 0.0
+    np.testing.assert_allclose(metrics["kl_max"], plain_metrics["kl_max"], rtol=1e-5)
+
+
+def test_kl_guard_at_a_bound_every_step_exceeds_keeps_the_iteration_start(guarded_iterations):
+    """At a bound the first stepped policy already exceeds, the iteration ends with the
+    networks and the optimiser it started with (the normaliser still takes the new data)."""
+    state, new, metrics = guarded_iterations["tight"]
+    assert not any(moved(state.params, new.params))
+    assert not any(moved(state.opt_state, new.opt_state))
+    assert int(new.normalizer_params.count) == 640
+    assert metrics["kl_stopped"] == 1.0 and metrics["kl_max"] > 0
