@@ -1,12 +1,12 @@
 """What the checkpoint digest (SHA-256 over a checkpoint's files,
 popsan_jax/training/checkpoint_index.py) costs against the Orbax save and restore it guards.
 
-Restores a committed pick checkpoint (default docs/reference/pick-popsan-s0's last), then,
+Restores a committed pick checkpoint (default docs/reference/readme-popsan-s0's last), then,
 for ``--rounds`` rounds: saves it into a temporary run (Orbax write + digest + manifest), hashes
 the new checkpoint alone, and restores it (digest check + Orbax read + finiteness check). Prints
 the checkpoint's size and the median and best seconds of each part. CPU model from /proc/cpuinfo.
 
-Usage: python benchmarks/checkpoint_digest.py [--run docs/reference/pick-popsan-s0] [--rounds 5]
+Usage: python benchmarks/checkpoint_digest.py [--run docs/reference/readme-popsan-s0] [--rounds 5]
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ def _cpu() -> str:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
-    p.add_argument("--run", default="docs/reference/pick-popsan-s0")
+    p.add_argument("--run", default="docs/reference/readme-popsan-s0")
     p.add_argument("--rounds", type=int, default=5)
     args = p.parse_args()
     import_mjx_quietly()

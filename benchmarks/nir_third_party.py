@@ -48,7 +48,7 @@ from popsan_jax.rollout import run_episodes  # noqa: E402
 from popsan_jax.snn.decoder import PopulationDecoder  # noqa: E402
 from popsan_jax.training.checkpoint import load_run  # noqa: E402
 
-DEFAULT_RUN = ROOT / "docs/reference/pick-popsan-s0"
+DEFAULT_RUN = ROOT / "docs/reference/readme-popsan-s0"
 
 
 def norse_spikes(graph, side: dict, enc: np.ndarray) -> dict[str, np.ndarray]:

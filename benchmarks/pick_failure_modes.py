@@ -1,6 +1,6 @@
 """How does a franka_pick policy fail? Its episodes split by outcome, with the grasp at the end.
 
-    .venv/bin/python benchmarks/pick_failure_modes.py docs/reference/pick-hold-popsan-s0
+    .venv/bin/python benchmarks/pick_failure_modes.py docs/reference/readme-popsan-s0
     .venv/bin/python benchmarks/pick_failure_modes.py RUN --episodes 1000 \
         --override finger_target_low=-0.02
 

@@ -26,9 +26,9 @@ from popsan_jax.training.checkpoint import load_run
 
 ROOT = Path(__file__).resolve().parents[2]
 # The committed PopSAN whose export is checked (one place: the reference folder may move).
-RUN = ROOT / "docs/reference/pick-popsan-s0"
+RUN = ROOT / "docs/reference/readme-popsan-s0"
 RUN_T2 = ROOT / "docs/reference/pick-popsan-t2-sop-s0"  # a second PopSAN, fine-tuned at T = 2
-MLP_RUN = ROOT / "docs/reference/pick-mlp-s0"
+MLP_RUN = ROOT / "docs/reference/readme-mlp-s0"
 # Actions from equal spikes differ only by float32 rounding of the decoder's sum and tanh.
 ACTION_ATOL = 8 * float(np.finfo(np.float32).eps)
 EPISODES = 16  # episodes of the shared rollout (one compiled env step serves every test)
