@@ -226,6 +226,12 @@ class RunConfig:
             raise ConfigError(f"warmup_env_steps must be >= 0, got {self.warmup_env_steps}")
         if self.warmup_env_steps and (self.warmup_num_evals < 1 or not self.warmup_actor_lr > 0):
             raise ConfigError("a warm-up needs warmup_num_evals >= 1 and warmup_actor_lr > 0")
+        if self.max_grad_norm is not None and not self.max_grad_norm > 0:
+            raise ConfigError(
+                f"max_grad_norm must be > 0 (None: no clip), got {self.max_grad_norm}"
+            )
+        if self.clip_per_network and self.max_grad_norm is None:
+            raise ConfigError("clip_per_network clips by max_grad_norm, which is None (no clip)")
         if not (self.max_kl >= 0 and math.isfinite(self.max_kl)):
             raise ConfigError(f"max_kl must be a finite number >= 0 (0: off), got {self.max_kl}")
         for name in ("end_at_success", "warmup_end_at_success"):

@@ -283,6 +283,12 @@ def test_validate_messages():
         RunConfig(unroll_length=0).validate()
     with pytest.raises(ConfigError, match="unknown preset"):
         resolve_config("huge")
+    # Per-network clipping clips by max_grad_norm: without a norm it would clip nothing.
+    with pytest.raises(ConfigError, match="clip_per_network clips by max_grad_norm, which is None"):
+        RunConfig(clip_per_network=True, max_grad_norm=None).validate()
+    RunConfig(clip_per_network=False, max_grad_norm=None).validate()
+    with pytest.raises(ConfigError, match=r"max_grad_norm must be > 0 \(None: no clip\), got 0.0"):
+        RunConfig(max_grad_norm=0.0).validate()
     for name in ("end_at_success", "warmup_end_at_success"):
         with pytest.raises(ConfigError, match=rf"{name} must be in \[0, 1\], got 1.5"):
             RunConfig(**{name: 1.5}).validate()
