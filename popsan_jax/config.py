@@ -151,6 +151,11 @@ class RunConfig:
     warmup_env_overrides: dict[str, Any] = dataclasses.field(default_factory=dict)
     warmup_actor_lr: float = _flag(1e-3, "actor learning rate of the warm-up stage")
     warmup_num_evals: int = _flag(24, "evaluations (and checkpoints) of the warm-up stage")
+    # The warm-up stage's clip_per_network: a warm-up starts from scratch, with no critic
+    # fitted to another reward, which is what the per-network clip is against.
+    warmup_clip_per_network: bool = _flag(
+        False, "the warm-up stage's clip_per_network: true | false"
+    )
     # Ending early (popsan_jax/training/loop.py): a run ends after its first training
     # evaluation whose success rate reaches end_at_success (0: never); its last checkpoint is
     # that evaluation's. warmup_end_at_success is the warm-up stage's: the run's own stage then
@@ -230,7 +235,7 @@ class RunConfig:
             raise ConfigError(
                 f"max_grad_norm must be > 0 (None: no clip), got {self.max_grad_norm}"
             )
-        if self.clip_per_network and self.max_grad_norm is None:
+        if (self.clip_per_network or self.warmup_clip_per_network) and self.max_grad_norm is None:
             raise ConfigError("clip_per_network clips by max_grad_norm, which is None (no clip)")
         if not (self.max_kl >= 0 and math.isfinite(self.max_kl)):
             raise ConfigError(f"max_kl must be a finite number >= 0 (0: off), got {self.max_kl}")

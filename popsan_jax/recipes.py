@@ -81,7 +81,10 @@ CPU_RECIPE: dict[str, Any] = dict(
 # gentle grasp and lift; then 4 M steps on the task itself at actor lr 3e-4. From scratch on the
 # task itself the policies learn to swing or lower the squeezed cube and never hold it. A warm-up
 # that ends holding the cube low needs about 2 M task steps to leave that plateau, hence 4 M
-# (docs/design.md, "A gentle grasp first").
+# (docs/design.md, "A gentle grasp first"). The second stage clips the actor's and the critic's
+# gradients each: its critic starts fitted to the warm-up's reward, and under the joint clip its
+# large gradients set the actor's step size (docs/design.md, "Guards at the stage change"); the
+# warm-up, from scratch, keeps the joint clip.
 PICK_RECIPE: dict[str, Any] = dict(
     warmup_env_steps=CPU_RECIPE["total_env_steps"],
     warmup_env_overrides=dict(finger_target_low=0.0, reward_scales=dict(object_speed=0.0)),
@@ -90,6 +93,8 @@ PICK_RECIPE: dict[str, Any] = dict(
     total_env_steps=4_000_000,
     actor_lr=3e-4,
     num_evals=16,
+    clip_per_network=True,
+    warmup_clip_per_network=False,
 )
 ENV_RECIPES: dict[str, dict[str, Any]] = {"franka_pick": PICK_RECIPE}
 

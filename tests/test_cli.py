@@ -31,7 +31,7 @@ discounting gae_lambda clipping_epsilon reward_scaling obs_clip init_log_std cri
 sop_cost sop_budget init_from init_checkpoint num_evals num_eval_envs keep_every_n_evals
 warmup_env_steps warmup_actor_lr warmup_num_evals prime_normalizer_episodes
 critic_warmup_env_steps freeze_normalizer end_at_success warmup_end_at_success clip_per_network
-max_kl""".split()
+max_kl warmup_clip_per_network""".split()
 
 
 def test_config_flags_are_the_run_config_fields_with_their_types():

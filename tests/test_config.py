@@ -24,10 +24,18 @@ ROOT = Path(__file__).resolve().parent.parent
 SECOND_STAGE_2M = dict(total_env_steps=2_000_000, num_evals=8)
 
 
-def earlier_command(**flags) -> RunConfig:
-    """The README's command ``train.py --env franka_pick`` with ``flags`` as configs recorded it
-    before PopSAN's ``decoder_init_scale`` existed: without the key, which builds the same 1.0."""
+def before_clip(**flags) -> RunConfig:
+    """The README's command ``train.py --env franka_pick`` with ``flags`` as it was before its
+    second stage clipped per network (8 December): the same command with the joint clip."""
     command = resolve_config(None, "cpu", dict(env="franka_pick", **flags))
+    assert command.clip_per_network and not command.warmup_clip_per_network
+    return command.replace(clip_per_network=False)
+
+
+def earlier_command(**flags) -> RunConfig:
+    """:func:`before_clip` as configs recorded it before PopSAN's ``decoder_init_scale``
+    existed: without the key, which builds the same 1.0."""
+    command = before_clip(**flags)
     assert command.actor_kwargs.get("decoder_init_scale", 1.0) == 1.0
     kwargs = {k: v for k, v in command.actor_kwargs.items() if k != "decoder_init_scale"}
     return command.replace(actor_kwargs=kwargs)
@@ -179,7 +187,7 @@ def test_readme_command_today_is_the_committed_epyc_run_and_its_t2_fine_tune():
     # docs/results.md, "The README's command on an AMD EPYC": the plain command as it reads now
     # (seed 0, the decoder key recorded), and the documented T = 2 fine-tune started from it.
     results = ROOT / "docs/results/stage4m"
-    command = resolve_config(None, "cpu", dict(env="franka_pick"))
+    command = before_clip()
     assert RunConfig.from_json(results / "popsan-s0-epyc/config.json") == command
     warm_up = RunConfig.from_json(results / "popsan-s0-epyc/warmup/config.json")
     assert warm_up == warmup_config(command)
@@ -187,7 +195,7 @@ def test_readme_command_today_is_the_committed_epyc_run_and_its_t2_fine_tune():
     assert command == earlier_command().replace(actor_kwargs=command.actor_kwargs)
     # The reference checkpoints of the README's command (docs/reference/README.md): that run,
     # and the same command with --actor mlp.
-    mlp = resolve_config(None, "cpu", dict(env="franka_pick", actor="mlp"))
+    mlp = before_clip(actor="mlp")
     for name, config in (("readme-popsan-s0", command), ("readme-mlp-s0", mlp)):
         reference = ROOT / "docs/reference" / name
         assert RunConfig.from_json(reference / "config.json") == config
@@ -198,9 +206,36 @@ def test_readme_command_today_is_the_committed_epyc_run_and_its_t2_fine_tune():
     line = text[start : text.index(".venv/bin/python eval.py", start)].replace("\\\n", " ")
     args = train_parser().parse_args(line.split()[1:])
     assert args.name == "t2-s0" and args.init_from == "runs/popsan-s0"
+    assert args.clip_per_network is False  # the run it starts from had the joint clip
     fine_tune = resolve_config(None, "cpu", *given_flags(args))
     assert RunConfig.from_json(results / "popsan-t2-s0/config.json") == fine_tune
     assert fine_tune.actor_kwargs["timesteps"] == 2 and fine_tune.warmup_env_steps == 0
+
+
+def test_readme_command_is_the_committed_per_network_clip_stages():
+    # docs/results.md, "The per-network clip adopted": each of the six runs is the README's
+    # command for its actor and seed as a warm-up followed by the stage started from it. The
+    # warm-up is the one the command trained before 8 December (unchanged by the per-network
+    # clip, which is the second stage's only), committed beside the earlier stage.
+    results = ROOT / "docs/results"
+    warm_ups = {
+        ("popsan", 0): "../reference/readme-popsan-s0/warmup",
+        ("popsan", 1): "readme5/popsan-s1/warmup",
+        ("popsan", 2): "stage4m/popsan-s2/warmup",
+        ("mlp", 0): "../reference/readme-mlp-s0/warmup",
+        ("mlp", 1): "stage4m/mlp-s1/warmup",
+        ("mlp", 2): "stage4m/mlp-s2/warmup",
+    }
+    sources = {("popsan", 0): "runs/popsan-s0/warmup"}
+    for (actor, seed), warm_path in warm_ups.items():
+        command = resolve_config(None, "cpu", dict(env="franka_pick", actor=actor, seed=seed))
+        assert warmup_config(command) == warmup_config(before_clip(actor=actor, seed=seed))
+        source = sources.get((actor, seed), f"runs/readme-{actor}-s{seed}/warmup")
+        stage = command.replace(init_from=source, init_checkpoint="last", warmup_env_steps=0)
+        committed = RunConfig.from_json(results / f"guards/clip-{actor}-s{seed}/config.json")
+        assert committed == stage, (actor, seed)
+        warm_up = RunConfig.from_json(results / warm_path / "config.json")
+        assert warm_up.replace(actor_kwargs=command.actor_kwargs) == warmup_config(command)
 
 
 def test_readme_command_is_the_committed_climb_runs():
@@ -302,6 +337,18 @@ def test_validate_messages():
     warmup_config(chained).validate()
 
 
+@pytest.mark.parametrize("stage, warm_up", [(True, False), (False, True), (True, True)])
+def test_each_stage_has_its_own_clip(stage, warm_up):
+    chained = RunConfig(
+        warmup_env_steps=1000, clip_per_network=stage, warmup_clip_per_network=warm_up
+    )
+    chained.validate()
+    assert warmup_config(chained).clip_per_network is warm_up
+    assert not warmup_config(chained).warmup_clip_per_network
+    with pytest.raises(ConfigError, match="clip_per_network clips by max_grad_norm"):
+        chained.replace(max_grad_norm=None).validate()
+
+
 def test_json_round_trip_keeps_tuples(tmp_path):
     c = resolve_config("smoke", "cpu", {"env_overrides": {"episode_length": 50}}, {"timesteps": 2})
     c.to_json(tmp_path / "config.json")
@@ -360,12 +407,15 @@ def test_documented_mlp_fine_tune_is_the_committed_three_seeds(tmp_path, monkeyp
         argv += ["--warmup-env-steps", "0", "--init-from", "docs/reference/pick-mlp-s0"]
         argv += ["--init-checkpoint", "last", "--critic-warmup-env-steps", "491520"]
         argv += ["--total-env-steps", "2500000", "--actor-lr", "1e-4", "--num-evals", "10"]
+        argv += ["--clip-per-network", "false"]
         args = train_parser().parse_args([*argv, "--runs-dir", str(tmp_path)])
         config, run_dir = prepare_run("cpu", *given_flags(args), **run_choices(args))
         committed = RunConfig.from_json(ROOT / f"docs/results/climb/{name}/config.json")
         # The runs predate the MLP's output_init_scale, which a started run's loaded weights
         # make moot (warm_start.FREE_ACTOR_KWARGS); the command now records the default.
         assert config.actor_kwargs == {**committed.actor_kwargs, "output_init_scale": 0.01}
+        # ... and the recipe's per-network clip (8 December), which the command states off.
+        assert args.clip_per_network is False
         assert config.replace(actor_kwargs=committed.actor_kwargs) == committed
         assert run_dir == tmp_path / name
         assert committed.critic_warmup_env_steps == 491520 and committed.seed == seed

@@ -6,8 +6,9 @@ Layout of such a run ``RUN``::
     RUN/config.json      the run's config as given (its warmup_* fields included); written first
     RUN/warmup/          a complete run directory of the warm-up stage (its own config.json,
                          metrics.jsonl, checkpoints/): env_overrides + warmup_env_overrides,
-                         warmup_actor_lr, warmup_num_evals, warmup_env_steps (or fewer:
-                         warmup_end_at_success ends it at an evaluation that reaches it)
+                         warmup_actor_lr, warmup_num_evals, warmup_clip_per_network,
+                         warmup_env_steps (or fewer: warmup_end_at_success ends it at an
+                         evaluation that reaches it)
     RUN/metrics.jsonl, RUN/checkpoints/   the run's own stage (env steps counted from 0)
 
 Everything that reads a finished run (eval.py, load_run) reads ``RUN``: its final checkpoint is
@@ -43,6 +44,8 @@ def warmup_config(config: RunConfig) -> RunConfig:
         warmup_env_overrides={},
         end_at_success=config.warmup_end_at_success,
         warmup_end_at_success=0.0,
+        clip_per_network=config.warmup_clip_per_network,
+        warmup_clip_per_network=False,
         critic_warmup_env_steps=0,  # the warm-up stage starts from scratch
         freeze_normalizer=False,
     )
